@@ -1,0 +1,1 @@
+"""Real-protocol clients for the chamber, the rate table and the IMU."""

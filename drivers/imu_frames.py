@@ -1,0 +1,180 @@
+"""The IMU's binary frame format, and vectorised encoding and resynchronising decoding.
+
+One frame, 20 bytes, little-endian:
+
+    offset  size  field
+    0       2     sync 0xA5 0x5A
+    2       2     counter, uint16, +1 per frame, wraps
+    4       6     accelerometer x y z, int16, 1 mg/LSB
+    10      6     gyroscope x y z, int16, 8.75 mdeg/s/LSB
+    16      2     temperature, int16, 0.01 degC/LSB
+    18      2     CRC-16/CCITT-FALSE of bytes 2..17
+
+The sims encode with `encode_frames`; the driver decodes with `FrameDecoder`, which
+keeps the bytes of a frame split across reads and skips corrupt bytes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+SYNC = b"\xa5\x5a"
+FRAME_SIZE = 20
+ACCEL_LSB_G = 0.001
+GYRO_LSB_DPS = 0.00875
+TEMP_LSB_C = 0.01
+COUNTER_MODULO = 1 << 16
+
+FRAME_DTYPE = np.dtype(
+    [("sync", "<u2"), ("counter", "<u2"), ("accel", "<i2", (3,)), ("gyro", "<i2", (3,)),
+     ("temp", "<i2"), ("crc", "<u2")]
+)
+assert FRAME_DTYPE.itemsize == FRAME_SIZE
+_SYNC_WORD = int.from_bytes(SYNC, "little")
+_CRC_SPAN = slice(2, 18)
+
+
+def _crc_table() -> np.ndarray:
+    table = np.zeros(256, dtype=np.uint16)
+    for i in range(256):
+        crc = i << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
+        table[i] = crc & 0xFFFF
+    return table
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc16_rows(rows: np.ndarray) -> np.ndarray:
+    """CRC-16/CCITT-FALSE of each row of a (N, L) uint8 array, vectorised over rows."""
+    crc = np.full(rows.shape[0], 0xFFFF, dtype=np.uint16)
+    for j in range(rows.shape[1]):
+        idx = ((crc >> 8) ^ rows[:, j]) & 0xFF
+        crc = ((crc << 8) & 0xFFFF) ^ _CRC_TABLE[idx]
+    return crc
+
+
+def crc16(data: bytes) -> int:
+    return int(crc16_rows(np.frombuffer(data, dtype=np.uint8)[None, :])[0])
+
+
+def to_counts(values: np.ndarray, lsb: float) -> np.ndarray:
+    """Round physical values to int16 counts, saturating like the sensor does."""
+    return np.clip(np.rint(np.asarray(values, dtype=float) / lsb), -32768, 32767).astype(np.int16)
+
+
+def encode_frames(counter: np.ndarray, accel_g: np.ndarray, gyro_dps: np.ndarray, temp_c: np.ndarray) -> bytes:
+    """Frames for N samples: counter (N,), accel (N,3) g, gyro (N,3) deg/s, temp (N,) degC."""
+    n = int(np.asarray(counter).size)
+    frames = np.zeros(n, dtype=FRAME_DTYPE)
+    frames["sync"] = _SYNC_WORD
+    frames["counter"] = np.asarray(counter, dtype=np.int64) % COUNTER_MODULO
+    frames["accel"] = to_counts(accel_g, ACCEL_LSB_G)
+    frames["gyro"] = to_counts(gyro_dps, GYRO_LSB_DPS)
+    frames["temp"] = to_counts(temp_c, TEMP_LSB_C)
+    raw = frames.view(np.uint8).reshape(n, FRAME_SIZE)
+    frames["crc"] = crc16_rows(raw[:, _CRC_SPAN])
+    return frames.tobytes()
+
+
+@dataclass
+class DecodedFrames:
+    """Frames decoded from one chunk of bytes (raw counts)."""
+
+    counter: np.ndarray  # uint16 as sent
+    accel: np.ndarray  # (N, 3) int16 counts
+    gyro: np.ndarray  # (N, 3) int16 counts
+    temp: np.ndarray  # (N,) int16 counts
+    corrupt: int  # corrupted stretches skipped (each at least one frame)
+    skipped_bytes: int
+
+    def __len__(self) -> int:
+        return int(self.counter.size)
+
+
+class FrameDecoder:
+    """Stateful stream decoder: feed bytes, get whole valid frames."""
+
+    def __init__(self) -> None:
+        self._tail = np.zeros(0, dtype=np.uint8)
+        self.frames = 0
+        self.corrupt = 0
+        self.skipped_bytes = 0
+
+    def feed(self, data: bytes) -> DecodedFrames:
+        buf = np.concatenate((self._tail, np.frombuffer(data, dtype=np.uint8))) if self._tail.size else \
+            np.frombuffer(data, dtype=np.uint8)
+        n = buf.size
+        starts = np.flatnonzero((buf[:-1] == SYNC[0]) & (buf[1:] == SYNC[1])) if n >= 2 else np.zeros(0, np.int64)
+        complete = starts[starts + FRAME_SIZE <= n]
+        if complete.size:
+            rows = buf[complete[:, None] + np.arange(FRAME_SIZE)]
+            crc = rows[:, 18].astype(np.uint16) | (rows[:, 19].astype(np.uint16) << 8)
+            ok = crc16_rows(rows[:, _CRC_SPAN]) == crc
+            accepted = _non_overlapping(complete[ok])
+            rows = rows[ok][np.isin(complete[ok], accepted)] if accepted.size != ok.sum() else rows[ok]
+        else:
+            accepted = np.zeros(0, dtype=np.int64)
+            rows = np.zeros((0, FRAME_SIZE), dtype=np.uint8)
+
+        # Keep what may be the start of a frame not yet complete.
+        end_used = int(accepted[-1]) + FRAME_SIZE if accepted.size else 0
+        keep_from = max(end_used, n - (FRAME_SIZE - 1))
+        pending = starts[(starts >= end_used) & (starts + FRAME_SIZE > n)]
+        if pending.size:
+            keep_from = min(keep_from, int(pending[0]))
+        keep_from = max(keep_from, end_used)
+        self._tail = buf[keep_from:].copy()
+
+        # Bytes between accepted frames, and before keep_from, were junk.
+        covered = np.zeros(keep_from, dtype=bool)
+        if accepted.size:
+            idx = (accepted[:, None] + np.arange(FRAME_SIZE)).ravel()
+            covered[idx[idx < keep_from]] = True
+        junk = ~covered
+        skipped = int(junk.sum())
+        corrupt = 0
+        if skipped:
+            edges = np.diff(np.concatenate(([0], junk.view(np.int8), [0])))
+            run_starts = np.flatnonzero(edges == 1)
+            run_ends = np.flatnonzero(edges == -1)
+            corrupt = int(np.maximum(1, np.rint((run_ends - run_starts) / FRAME_SIZE)).sum())
+        frames = np.frombuffer(rows.tobytes(), dtype=FRAME_DTYPE) if len(rows) else np.zeros(0, FRAME_DTYPE)
+        self.frames += len(frames)
+        self.corrupt += corrupt
+        self.skipped_bytes += skipped
+        return DecodedFrames(
+            counter=frames["counter"].copy(), accel=frames["accel"].copy(), gyro=frames["gyro"].copy(),
+            temp=frames["temp"].copy(), corrupt=corrupt, skipped_bytes=skipped,
+        )
+
+
+def _non_overlapping(starts: np.ndarray) -> np.ndarray:
+    """Greedy in order: keep a frame start only if it begins after the previous kept frame."""
+    if starts.size <= 1 or np.all(np.diff(starts) >= FRAME_SIZE):
+        return starts
+    kept = [int(starts[0])]
+    for s in starts[1:]:
+        if s >= kept[-1] + FRAME_SIZE:
+            kept.append(int(s))
+    return np.asarray(kept, dtype=np.int64)
+
+
+def unwrap_counter(counter16: np.ndarray, last: int | None) -> np.ndarray:
+    """Unwrap uint16 counters into an increasing int64 sequence continuing from `last`.
+
+    A repeated counter (delta 0) maps to the same value, so the caller can drop it.
+    """
+    c = np.asarray(counter16, dtype=np.int64)
+    if c.size == 0:
+        return c
+    prev = np.empty_like(c)
+    prev[0] = (last % COUNTER_MODULO) if last is not None else c[0] - 1
+    prev[1:] = c[:-1]
+    delta = (c - prev) % COUNTER_MODULO
+    base = (last if last is not None else c[0] - 1)
+    return base + np.cumsum(delta)

@@ -1,0 +1,43 @@
+"""Where analysis data comes from: a campaign CSV or a labrunner SQLite store, as one frame."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from labrunner.campaign_csv import CampaignDataError, read_campaign
+
+SQLITE_MAGIC = b"SQLite format 3\x00"
+
+
+@dataclass
+class CampaignData:
+    """Validated campaign rows (campaign CSV columns) and where they came from."""
+
+    frame: pd.DataFrame
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+
+def is_sqlite(path: str | Path) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(16) == SQLITE_MAGIC
+    except OSError:
+        return False
+
+
+def load_campaign_data(path: str | Path, campaign: int | None = None) -> CampaignData:
+    """Load a campaign CSV or a store database (its one campaign, or `campaign`)."""
+    p = Path(path)
+    if not p.exists():
+        raise CampaignDataError(str(p), "file not found")
+    if is_sqlite(p):
+        from labrunner.store import Store
+
+        with Store.open_existing(p) as store:
+            return store.campaign_data(campaign)
+    frame = read_campaign(p)
+    return CampaignData(frame=frame, provenance={"source": str(p.resolve()), "kind": "csv", "rows": len(frame)})

@@ -1,0 +1,1 @@
+"""Simulated chamber, rate table and IMU that speak the drivers' protocols."""

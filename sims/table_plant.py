@@ -1,0 +1,77 @@
+"""Single-axis rate table physics: acceleration-limited rate changes and rate accuracy.
+
+A commanded rate is reached at constant acceleration. The rate held differs from
+the command by a static error drawn per command plus a once-per-revolution ripple,
+together within the table's stated accuracy (+-0.01 %, the paper's table). The
+rate profile is piecewise linear, so it is evaluated vectorised at any sample times.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class TableParams:
+    max_rate_dps: float = 1000.0  # what the hardware can do; procedures set their own lower limit
+    accel_dps2: float = 100.0
+    rate_accuracy: float = 1e-4  # relative bound of |held - commanded| / |commanded|
+    encoder_resolution_dps: float = 1e-4
+
+
+class TablePlant:
+    """Rate as a function of time; commands append piecewise-linear segments."""
+
+    def __init__(self, params: TableParams | None = None, start_t: float = 0.0, seed: int = 0) -> None:
+        self.p = params or TableParams()
+        self._rng = np.random.default_rng([seed, 0x7AB1E])
+        # Segments (t_start, rate_start, rate_end, t_end): linear from start to end, then constant.
+        self._seg_t0 = np.array([start_t])
+        self._seg_r0 = np.array([0.0])
+        self._seg_r1 = np.array([0.0])
+        self._seg_t1 = np.array([start_t])
+        self.commanded_dps = 0.0
+        self.fault: str | None = None  # set by fault injection: the table refuses to move
+
+    def _held_rate(self, command: float) -> float:
+        # Half of the accuracy budget as a static error, half as ripple.
+        err = float(np.clip(self._rng.normal(0.0, 0.2 * self.p.rate_accuracy), -0.5 * self.p.rate_accuracy,
+                            0.5 * self.p.rate_accuracy))
+        return command * (1.0 + err)
+
+    def command(self, t: float, rate_dps: float) -> None:
+        """Command a new rate at time t (0 stops the table)."""
+        r_now = float(self.rate_at(np.array([t]), ripple=False)[0])
+        target = self._held_rate(rate_dps) if rate_dps != 0 else 0.0
+        t_end = t + abs(target - r_now) / self.p.accel_dps2
+        keep = self._seg_t0 < t
+        self._seg_t0 = np.append(self._seg_t0[keep][-63:], t)
+        self._seg_r0 = np.append(self._seg_r0[keep][-63:], r_now)
+        self._seg_r1 = np.append(self._seg_r1[keep][-63:], target)
+        self._seg_t1 = np.append(self._seg_t1[keep][-63:], t_end)
+        self.commanded_dps = float(rate_dps)
+
+    def rate_at(self, times: np.ndarray, ripple: bool = True) -> np.ndarray:
+        """True table rate (deg/s) at times (must not precede the oldest kept segment)."""
+        times = np.asarray(times, dtype=float)
+        i = np.clip(np.searchsorted(self._seg_t0, times, side="right") - 1, 0, None)
+        t0, r0, r1, t1 = self._seg_t0[i], self._seg_r0[i], self._seg_r1[i], self._seg_t1[i]
+        span = np.maximum(t1 - t0, 1e-12)
+        frac = np.clip((times - t0) / span, 0.0, 1.0)
+        rate = r0 + (r1 - r0) * frac
+        if ripple:
+            # Once-per-revolution wobble; the angle is only needed modulo a turn.
+            angle = np.deg2rad(rate) * times
+            rate = rate * (1.0 + 0.5 * self.p.rate_accuracy * np.sin(angle))
+        return rate
+
+    def measured_rate(self, t: float) -> float:
+        """What the table's encoder reports (resolution-limited)."""
+        r = float(self.rate_at(np.array([t]))[0])
+        q = self.p.encoder_resolution_dps
+        return round(r / q) * q
+
+    def settled(self, t: float) -> bool:
+        return bool(t >= self._seg_t1[-1])

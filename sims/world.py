@@ -1,0 +1,178 @@
+"""The simulated lab's physical state: chamber air, rate table, and an IMU mounted on the table.
+
+One object, one lock, one clock: the chamber server, the table server and the IMU
+stream all read it, so every simulated instrument sees the same moment. The IMU's
+case follows the chamber air with a first-order lag; its die (where the temperature
+sensor is) runs warmer by a self-heating rise that builds after each power-on.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .chamber_plant import ChamberParams, ChamberPlant
+from .imu_model import ImuInputs, ImuModel, default_imu_model, up_vector
+from .table_plant import TableParams, TablePlant
+
+HISTORY_S = 6 * 3600.0  # how far back IMU temperatures can be asked for
+
+
+@dataclass
+class ImuThermalParams:
+    case_tau_s: float = 900.0  # the IMU case lags the chamber air
+    self_heat_c: float = 4.0  # die above case once warm, while powered
+    self_heat_tau_s: float = 300.0
+
+
+@dataclass
+class SimLabConfig:
+    """Everything that defines a simulated lab (loadable from a YAML/JSON sim configuration)."""
+
+    seed: int = 0
+    chamber: ChamberParams = field(default_factory=ChamberParams)
+    table: TableParams = field(default_factory=TableParams)
+    imu_thermal: ImuThermalParams = field(default_factory=ImuThermalParams)
+    imu_model: ImuModel = field(default_factory=default_imu_model)
+    imu_rate_hz: float = 50.0
+    orientation: str = "z_up"
+    faults: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> SimLabConfig:
+        """Build from a mapping; unknown keys are refused with their name."""
+        known = {"seed", "chamber", "table", "imu_thermal", "imu_model", "imu_rate_hz", "orientation", "faults"}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown sim configuration key(s): {', '.join(sorted(unknown))}")
+
+        def sub(klass: type, key: str) -> Any:
+            value = data.get(key) or {}
+            if not isinstance(value, dict):
+                raise ValueError(f"sim configuration {key} must be a mapping")
+            try:
+                return klass(**value)
+            except TypeError as exc:
+                raise ValueError(f"sim configuration {key}: {exc}") from None
+
+        model = data.get("imu_model")
+        if isinstance(model, str):
+            imu_model = ImuModel.load(model)
+        elif isinstance(model, dict):
+            imu_model = ImuModel.from_dict(model)
+        else:
+            imu_model = default_imu_model()
+        seed = int(data.get("seed", 0))
+        imu_model.seed = int(model.get("seed", seed)) if isinstance(model, dict) else seed
+        up_vector(str(data.get("orientation", "z_up")))  # validates
+        return cls(seed=seed, chamber=sub(ChamberParams, "chamber"), table=sub(TableParams, "table"),
+                   imu_thermal=sub(ImuThermalParams, "imu_thermal"), imu_model=imu_model,
+                   imu_rate_hz=float(data.get("imu_rate_hz", 50.0)), orientation=str(data.get("orientation", "z_up")),
+                   faults=dict(data.get("faults") or {}))
+
+
+class SimWorld:
+    """Physical state of the simulated lab, advanced lazily to the clock's time."""
+
+    def __init__(self, config: SimLabConfig, start_t: float) -> None:
+        self.config = config
+        self.lock = threading.RLock()
+        self.chamber = ChamberPlant(config.chamber, start_t=start_t, seed=config.seed)
+        self.table = TablePlant(config.table, start_t=start_t, seed=config.seed)
+        self.model = config.imu_model
+        self.thermal = config.imu_thermal
+        self.case_c = config.chamber.ambient_c
+        self.orientation = config.orientation
+        self.powered = True
+        self.run = 1
+        self.t_on = float(start_t)
+        # History on the integration grid: columns t, case, air; grows, then drops its oldest half.
+        self._hist = np.empty((4096, 3))
+        self._hist[0] = (float(start_t), self.case_c, self.chamber.air_c)
+        self._n = 1
+
+    @property
+    def t(self) -> float:
+        return self.chamber.t
+
+    def advance(self, t: float) -> None:
+        """Integrate chamber air and IMU case temperature up to time t (1 s grid)."""
+        with self.lock:
+            step = self.chamber.p.step_s
+            a = math.exp(-step / self.thermal.case_tau_s)
+            while self.chamber.t + step <= t + 1e-9:
+                self.chamber._step(step)
+                self.case_c = a * self.case_c + (1 - a) * self.chamber.air_c
+                if self._n == len(self._hist):
+                    keep = int(HISTORY_S / step)
+                    if self._n > 2 * keep:
+                        self._hist[:keep] = self._hist[self._n - keep:self._n]
+                        self._n = keep
+                    else:
+                        self._hist = np.concatenate([self._hist, np.empty_like(self._hist)])
+                self._hist[self._n] = (self.chamber.t, self.case_c, self.chamber.air_c)
+                self._n += 1
+
+    def _history(self, times: np.ndarray, column: int) -> np.ndarray:
+        """Interpolate a history column at times (only the stretch of history they span)."""
+        times = np.asarray(times, dtype=float)
+        if times.size == 0:
+            return np.empty(0)
+        ht = self._hist[: self._n, 0]
+        lo = max(int(np.searchsorted(ht, times.min(), side="right")) - 1, 0)
+        hi = min(int(np.searchsorted(ht, times.max(), side="left")) + 1, self._n)
+        return np.interp(times, ht[lo:hi], self._hist[lo:hi, column])
+
+    # --- what the IMU sees ------------------------------------------------------------
+
+    def air_at(self, times: np.ndarray) -> np.ndarray:
+        with self.lock:
+            return self._history(times, 2)
+
+    def imu_temperature_at(self, times: np.ndarray) -> np.ndarray:
+        """Die temperature (what the IMU's sensor reads) at times within the history."""
+        with self.lock:
+            case = self._history(times, 1)
+            if not self.powered:
+                return case
+            since_on = np.maximum(np.asarray(times, dtype=float) - self.t_on, 0.0)
+            return case + self.thermal.self_heat_c * (1.0 - np.exp(-since_on / self.thermal.self_heat_tau_s))
+
+    def imu_inputs(self, times: np.ndarray) -> ImuInputs:
+        times = np.asarray(times, dtype=float)
+        n = times.size
+        up = up_vector(self.orientation)
+        rate = self.table.rate_at(times)
+        return ImuInputs(
+            t_s=times,
+            run=np.full(n, self.run, dtype=np.int64),
+            t_on_s=times - self.t_on,
+            temp_c=self.imu_temperature_at(times),
+            force_g=np.tile(up, (n, 1)),
+            rate_dps=rate[:, None] * up[None, :],
+        )
+
+    # --- what the operator does -------------------------------------------------------
+
+    def power_off(self) -> None:
+        with self.lock:
+            self.powered = False
+
+    def power_on(self, t: float) -> None:
+        with self.lock:
+            self.advance(t)
+            self.powered = True
+            self.run += 1
+            self.t_on = float(t)
+
+    def remount(self, orientation: str, t: float) -> None:
+        """Power down, turn the IMU to another orientation on the table, power up (a new run)."""
+        up_vector(orientation)
+        with self.lock:
+            self.power_off()
+            self.orientation = orientation
+            self.power_on(t)
