@@ -35,7 +35,7 @@ class CampaignDataError(UserError, ValueError):
         self.column = column
         where = source + (f":{line}" if line is not None else "")
         col = f" column '{column}'" if column else ""
-        super().__init__(f"{where}:{col} {message}")
+        super().__init__(f"{where}:{col}: {message}" if col else f"{where}: {message}")
 
 
 def _line(index: int, from_csv: bool) -> int:
