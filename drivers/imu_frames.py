@@ -101,9 +101,15 @@ class FrameDecoder:
 
     def __init__(self) -> None:
         self._tail = np.zeros(0, dtype=np.uint8)
+        self._junk = 0  # junk bytes since the last good frame, not yet counted as a corrupt stretch
         self.frames = 0
         self.corrupt = 0
         self.skipped_bytes = 0
+
+    def drop_partial(self) -> None:
+        """Forget a partial frame (the stream restarts mid-frame, e.g. after the link dropped)."""
+        self._tail = np.zeros(0, dtype=np.uint8)
+        self._junk = 0
 
     def feed(self, data: bytes) -> DecodedFrames:
         buf = np.concatenate((self._tail, np.frombuffer(data, dtype=np.uint8))) if self._tail.size else \
@@ -130,19 +136,28 @@ class FrameDecoder:
         keep_from = max(keep_from, end_used)
         self._tail = buf[keep_from:].copy()
 
-        # Bytes between accepted frames, and before keep_from, were junk.
+        # Bytes between accepted frames, and before keep_from, were junk. A junk stretch is
+        # counted once, when a good frame ends it, however the bytes were split across reads.
         covered = np.zeros(keep_from, dtype=bool)
         if accepted.size:
             idx = (accepted[:, None] + np.arange(FRAME_SIZE)).ravel()
             covered[idx[idx < keep_from]] = True
-        junk = ~covered
-        skipped = int(junk.sum())
+        skipped = int(keep_from - covered.sum())
         corrupt = 0
-        if skipped:
-            edges = np.diff(np.concatenate(([0], junk.view(np.int8), [0])))
-            run_starts = np.flatnonzero(edges == 1)
-            run_ends = np.flatnonzero(edges == -1)
-            corrupt = int(np.maximum(1, np.rint((run_ends - run_starts) / FRAME_SIZE)).sum())
+        pending = self._junk
+        if skipped or (pending and accepted.size):
+            starts_at = accepted if accepted.size else np.zeros(0, np.int64)
+            prev_end = np.concatenate(([0], starts_at[:-1] + FRAME_SIZE)) if starts_at.size else np.zeros(0, np.int64)
+            gaps = starts_at - prev_end  # junk bytes just before each accepted frame
+            if gaps.size:
+                gaps = gaps.astype(np.int64)
+                gaps[0] += pending
+                closed = gaps[gaps > 0]
+                corrupt = int(np.maximum(1, np.rint(closed / FRAME_SIZE)).sum())
+                pending = int(keep_from - (starts_at[-1] + FRAME_SIZE))
+            else:
+                pending += skipped
+        self._junk = pending
         frames = np.frombuffer(rows.tobytes(), dtype=FRAME_DTYPE) if len(rows) else np.zeros(0, FRAME_DTYPE)
         self.frames += len(frames)
         self.corrupt += corrupt

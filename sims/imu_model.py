@@ -161,9 +161,14 @@ class Warmup:
 
 @dataclass
 class TurnOnBias:
-    """A different constant offset after each power-on, normal with spread sigma."""
+    """A different constant offset after each power-on, normal with spread sigma.
+
+    `offsets` pins the offsets of listed runs ({run number: {channel: offset}}), so a model
+    fitted to a measured campaign reproduces that campaign's runs; other runs draw from sigma.
+    """
 
     sigma: dict[str, float] = field(default_factory=dict)
+    offsets: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 @dataclass
@@ -190,6 +195,19 @@ class TemperatureNonlinearity:
 
 
 @dataclass
+class LeverArm:
+    """The accelerometer sits r_m (body frame, metres) off the rotation axis: it senses the
+    centripetal acceleration w x (w x r) / g0, which grows with the square of the table rate on
+    the horizontal axes. (The tangential term, present only while the table accelerates, is
+    neglected.)"""
+
+    r_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+STANDARD_GRAVITY = 9.80665
+
+
+@dataclass
 class BiasRandomWalk:
     """Slow random-walk bias drift, sigma in sensor units per sqrt(s) (bias instability)."""
 
@@ -205,6 +223,7 @@ EFFECT_TYPES: dict[str, type] = {
     "scale_nonlinearity": ScaleNonlinearity,
     "temperature_nonlinearity": TemperatureNonlinearity,
     "bias_random_walk": BiasRandomWalk,
+    "lever_arm": LeverArm,
 }
 
 
@@ -270,7 +289,11 @@ class ImuModel:
         if eff is None or runs.size == 0:
             return out
         sigma = _channel_vector(eff.sigma)
+        pinned = {int(k): _channel_vector(v) for k, v in eff.offsets.items()}
         for r in np.unique(runs):
+            if int(r) in pinned:
+                out[runs == r] = pinned[int(r)]
+                continue
             z = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, int(r) & 0xFFFFFFFF, 0x7B1A5]).standard_normal(6)
             out[runs == r] = z * sigma
         return out
@@ -330,6 +353,12 @@ class ImuModel:
         if eff is not None:
             k2 = _channel_vector(eff.k2_per_dps)
             err += np.concatenate([force, rate], axis=1) ** 2 * k2[None, :]
+
+        eff = self.effects.get("lever_arm")
+        if eff is not None:
+            w = np.deg2rad(rate)
+            r = np.asarray(eff.r_m, dtype=float)
+            err[:, :3] += np.cross(w, np.cross(w, r[None, :])) / STANDARD_GRAVITY
 
         eff = self.effects.get("bias_random_walk")
         if eff is not None and rng is not None:
@@ -447,6 +476,16 @@ def effect_from_dict(name: str, data: Mapping[str, Any]) -> Any:
                 raise ValueError(f"effect thermal_lag: unknown channel {c!r}")
         if eff.tau_s <= 0:
             raise ValueError("effect thermal_lag: tau_s must be > 0")
+    if isinstance(eff, TurnOnBias):
+        try:
+            eff.offsets = {str(int(k)): _channel_map(v) for k, v in (eff.offsets or {}).items()}
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"effect turn_on_bias: offsets must map run numbers to channel offsets ({exc})") from None
+    if isinstance(eff, LeverArm):
+        r = np.asarray(eff.r_m, dtype=float)
+        if r.shape != (3,):
+            raise ValueError("effect lever_arm: r_m must be 3 numbers (metres, body frame)")
+        eff.r_m = r.tolist()
     if isinstance(eff, GSensitivity):
         m = np.asarray(eff.matrix_dps_per_g, dtype=float)
         if m.shape != (3, 3):

@@ -1,0 +1,218 @@
+"""Modbus TCP / RTU client for a thermal chamber controller described by a register-map profile."""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+from pymodbus.framer import FramerType
+
+from .chamber_profiles import ChamberProfile, profile_from
+from .errors import InstrumentError, InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
+from .protocols import Identity
+from .retry import Sleep, with_retry
+
+# pymodbus logs every failed request itself; this driver reports them as errors that say more.
+logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+# Plausible air temperatures: anything else read from the PV register is garbage, not a reading.
+PLAUSIBLE_C = (-100.0, 300.0)
+MODBUS_EXCEPTIONS = {
+    1: "illegal function", 2: "illegal data address", 3: "illegal data value", 4: "server device failure",
+    5: "acknowledge (busy with a long command)", 6: "server device busy", 10: "gateway path unavailable",
+    11: "gateway target failed to respond",
+}
+TRANSIENT_EXCEPTIONS = {5, 6, 10, 11}
+
+
+@dataclass(frozen=True)
+class ModbusAddress:
+    """Where the controller is: TCP host/port, or an RTU serial port (device path or socket:// URL)."""
+
+    transport: str = "tcp"  # "tcp" or "rtu"
+    host: str = "127.0.0.1"
+    port: int = 502
+    serial_port: str | None = None
+    baudrate: int = 19200
+    device_id: int = 1
+
+    def __str__(self) -> str:
+        if self.transport == "tcp":
+            return f"modbus-tcp://{self.host}:{self.port} (device {self.device_id})"
+        return f"modbus-rtu:{self.serial_port} @ {self.baudrate} (device {self.device_id})"
+
+
+class ModbusChamber:
+    """A chamber controller over Modbus (implements `drivers.protocols.Chamber`)."""
+
+    def __init__(self, address: ModbusAddress, profile: ChamberProfile | str = "watlow_f4", *,
+                 name: str = "chamber", timeout_s: float = 1.0, retries: int = 2, backoff_s: float = 0.5,
+                 sleep: Sleep = time.sleep,
+                 on_retry: Callable[[int, InstrumentError], None] | None = None) -> None:
+        if address.transport not in ("tcp", "rtu"):
+            raise ValueError(f"{name}: transport must be 'tcp' or 'rtu', got {address.transport!r}")
+        if address.transport == "rtu" and not address.serial_port:
+            raise ValueError(f"{name}: an RTU chamber needs serial_port")
+        self.name = name
+        self.addr = address
+        self.address = str(address)
+        self.profile = profile_from(profile) if isinstance(profile, str) else profile
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.backoff_s = backoff_s
+        self._sleep = sleep
+        self.on_retry = on_retry
+        self._client: ModbusTcpClient | ModbusSerialClient | None = None
+        self._range: tuple[float, float] | None = None
+        self._lock = threading.RLock()
+
+    # --- connection -----------------------------------------------------------------
+
+    def _make_client(self) -> ModbusTcpClient | ModbusSerialClient:
+        if self.addr.transport == "tcp":
+            return ModbusTcpClient(self.addr.host, port=self.addr.port, timeout=self.timeout_s, retries=0)
+        return ModbusSerialClient(self.addr.serial_port, framer=FramerType.RTU, baudrate=self.addr.baudrate,
+                                  timeout=self.timeout_s, retries=0)
+
+    def _ensure_connected(self) -> ModbusTcpClient | ModbusSerialClient:
+        if self._client is None:
+            self._client = self._make_client()
+        if not self._client.connected:
+            try:
+                ok = self._client.connect()
+            except Exception as exc:  # pymodbus/pyserial raise assorted OSErrors on connect
+                ok = False
+                reason = str(exc)
+            else:
+                reason = "connection refused or no answer"
+            if not ok:
+                self._client.close()
+                raise InstrumentTimeout(self.name, self.address, f"cannot connect: {reason}")
+        return self._client
+
+    def connect(self) -> None:
+        with self._lock:
+            with_retry(self._ensure_connected, retries=self.retries, backoff_s=self.backoff_s, sleep=self._sleep,
+                       on_retry=self.on_retry)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._client is not None:
+                self._client.close()
+                self._client = None
+
+    # --- register access ----------------------------------------------------------------
+
+    def _transact(self, register: int, op: str, fn: Callable[[ModbusTcpClient | ModbusSerialClient], object]) -> object:
+        def attempt() -> object:
+            client = self._ensure_connected()
+            try:
+                response = fn(client)
+            except ModbusException as exc:
+                client.close()  # a half-read reply leaves the stream out of step: start clean
+                raise InstrumentTimeout(self.name, self.address, f"{op}: no valid answer ({exc})",
+                                        register=register) from None
+            except OSError as exc:
+                client.close()
+                raise InstrumentTimeout(self.name, self.address, f"{op}: link error ({exc})", register=register) from None
+            if response.isError():
+                code = getattr(response, "exception_code", None)
+                text = MODBUS_EXCEPTIONS.get(code, f"code {code}")
+                if code in TRANSIENT_EXCEPTIONS:
+                    raise InstrumentError(self.name, self.address, f"{op}: Modbus exception {code} ({text})",
+                                          register=register)
+                raise InstrumentRefused(self.name, self.address, f"{op}: Modbus exception {code} ({text})",
+                                        register=register)
+            return response
+
+        with self._lock:
+            return with_retry(attempt, retries=self.retries, backoff_s=self.backoff_s, sleep=self._sleep,
+                              on_retry=self.on_retry)
+
+    def read_words(self, register: int, count: int) -> list[int]:
+        response = self._transact(register, f"read {count} register(s)", lambda c: c.read_holding_registers(
+            register, count=count, device_id=self.addr.device_id))
+        words = list(getattr(response, "registers", []) or [])
+        if len(words) != count:
+            raise InstrumentProtocolError(self.name, self.address, f"asked for {count} register(s), got {len(words)}",
+                                          register=register)
+        return words
+
+    def write_words(self, register: int, words: list[int]) -> None:
+        if len(words) == 1:
+            self._transact(register, "write register", lambda c: c.write_register(
+                register, words[0], device_id=self.addr.device_id))
+        else:
+            self._transact(register, f"write {len(words)} registers", lambda c: c.write_registers(
+                register, words, device_id=self.addr.device_id))
+
+    def _read_value(self, register: int, *, output: bool = False) -> float:
+        return self.profile.decode(self.read_words(register, self.profile.words), output=output)
+
+    # --- the Chamber interface ------------------------------------------------------------
+
+    def identity(self) -> Identity:
+        extra: dict[str, str] = {"profile": self.profile.name}
+        if self.profile.model_register is not None:
+            code = self.read_words(self.profile.model_register, 1)[0]
+            extra["model_code"] = str(code)
+            if self.profile.model_code is not None and code != self.profile.model_code:
+                raise InstrumentProtocolError(
+                    self.name, self.address, f"model register reads {code}, profile {self.profile.name!r} expects "
+                    f"{self.profile.model_code}: wrong controller or wrong profile", register=self.profile.model_register)
+        return Identity(vendor=self.profile.vendor, model=self.profile.model, extra=extra)
+
+    def setpoint_range(self) -> tuple[float, float]:
+        if self._range is None:
+            if self.profile.setpoint_min is not None and self.profile.setpoint_max is not None:
+                lo = self._read_value(self.profile.setpoint_min)
+                hi = self._read_value(self.profile.setpoint_max)
+                if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                    raise InstrumentProtocolError(self.name, self.address, f"setpoint range reads {lo}..{hi}",
+                                                  register=self.profile.setpoint_min)
+                self._range = (lo, hi)
+            else:
+                assert self.profile.fixed_range_c is not None
+                self._range = self.profile.fixed_range_c
+        return self._range
+
+    def read_temperature(self) -> float:
+        """The process value; a garbage reading (sensor break, corrupted reply) is re-read, bounded."""
+        for attempt in range(self.retries + 1):
+            value = self._read_value(self.profile.process_value)
+            if math.isfinite(value) and PLAUSIBLE_C[0] <= value <= PLAUSIBLE_C[1]:
+                return value
+            err = InstrumentProtocolError(self.name, self.address, f"process value reads {value!r}, not a plausible "
+                                          "temperature (sensor break?)", register=self.profile.process_value)
+            if attempt < self.retries:
+                if self.on_retry:
+                    self.on_retry(attempt + 1, err)
+                self._sleep(self.backoff_s * (2 ** attempt))
+        raise err
+
+    def read_setpoint(self) -> float:
+        return self._read_value(self.profile.setpoint)
+
+    def set_setpoint(self, value_c: float) -> None:
+        lo, hi = self.setpoint_range()
+        if not (math.isfinite(value_c) and lo <= value_c <= hi):
+            raise LimitError(self.name, self.address, f"setpoint {value_c} C is outside the controller's range "
+                             f"{lo}..{hi} C; nothing was written", register=self.profile.setpoint)
+        words = self.profile.encode(value_c)
+        self.write_words(self.profile.setpoint, words)
+        back = self.read_setpoint()
+        if abs(back - value_c) > (0.051 if self.profile.encoding == "int16_tenths" else 1e-3):
+            raise InstrumentProtocolError(self.name, self.address, f"setpoint written as {value_c} reads back {back}",
+                                          register=self.profile.setpoint)
+
+    def outputs(self) -> tuple[float | None, float | None]:
+        """Heat and cool output, percent (None where the profile has no register)."""
+        heat = self._read_value(self.profile.heat_output, output=True) if self.profile.heat_output is not None else None
+        cool = self._read_value(self.profile.cool_output, output=True) if self.profile.cool_output is not None else None
+        return heat, cool

@@ -1,0 +1,267 @@
+"""`fit_campaign`: campaign rows in, calibration models, evaluation and provenance out."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+import labrunner
+from labrunner.errors import UserError
+
+from .evaluation import SPLITS, SplitResult, evaluate
+from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_model
+from .records import RecordOptions, Records, TemperatureSteps, frame_arrays, segment_records, temperature_steps
+from .six_position import StepCalibration, calibrate_steps
+from .thermal_poly import PolyModel, TriadPoly, cv_order, fit_joint, fit_two_stage, max_order
+from .triads import ORIENTATIONS, TRIADS
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """What to fit and how. Defaults: cubic joint polynomial, all RBF variants, all splits."""
+
+    poly_order: int | str = 3  # or "cv": chosen per triad by leave-one-step-out cross-validation
+    max_poly_order: int = 5  # upper bound for "cv"
+    poly_method: str = "joint"  # "joint" (one-stage, default) or "two_stage" (the paper's)
+    t_ref_c: float = 25.0
+    rbf_variants: tuple[str, ...] = VARIANTS  # networks to train ("paper", "triad", "hybrid")
+    rbf_export: str = "hybrid"  # the variant exported as the RBF model (JSON, C header)
+    rbf: RbfOptions = field(default_factory=RbfOptions)
+    records: RecordOptions = field(default_factory=RecordOptions)
+    evaluate: bool = True
+    splits: tuple[str, ...] = SPLITS
+    holdout_fraction: float = 0.2
+    eval_max_rows: int = 1_000_000  # held-out rows scored per split (a random subset beyond this)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.poly_method not in ("joint", "two_stage"):
+            raise UserError(f"poly method must be 'joint' or 'two_stage', not {self.poly_method!r}")
+        if not (self.poly_order == "cv" or (isinstance(self.poly_order, int) and self.poly_order >= 0)):
+            raise UserError(f"polynomial order must be a non-negative integer or 'cv', not {self.poly_order!r}")
+        for v in self.rbf_variants:
+            if v not in VARIANTS:
+                raise UserError(f"unknown RBF variant {v!r}; expected one of {', '.join(VARIANTS)}")
+        if self.rbf_export and self.rbf_export not in self.rbf_variants:
+            raise UserError(f"the exported RBF variant {self.rbf_export!r} is not among those trained "
+                            f"({', '.join(self.rbf_variants) or 'none'})")
+        for s in self.splits:
+            if s not in SPLITS:
+                raise UserError(f"unknown evaluation split {s!r}; expected one of {', '.join(SPLITS)}")
+
+
+@dataclass
+class Models:
+    """Everything fitted from one set of records."""
+
+    steps: TemperatureSteps
+    six_position: dict[str, list[StepCalibration]]
+    poly: dict[str, PolyModel]  # method -> model ("joint", "two_stage" when it can be fitted)
+    poly_method: str
+    rbf: dict[str, RbfModel]
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def polynomial(self) -> PolyModel:
+        return self.poly[self.poly_method]
+
+    def compensators(self) -> dict[str, object]:
+        """Models scored by the evaluation, by display name."""
+        out: dict[str, object] = {"polynomial": self.polynomial}
+        other = [m for m in self.poly if m != self.poly_method]
+        for m in other:
+            out[f"polynomial_{m}"] = self.poly[m]
+        for v, model in self.rbf.items():
+            out[f"rbf_{v}"] = model
+        return out
+
+
+def fit_models(records: Records, options: FitOptions, progress: Progress | None = None) -> Models:
+    """Six-position per step, thermal polynomials and RBF networks from the given records."""
+    if len(records) == 0:
+        raise ValueError("no stable records to fit")
+    steps = temperature_steps(records, options.records.step_gap_c, options.records.max_step_width_c)
+    notes: list[str] = []
+    if progress:
+        progress(f"six-position calibration at {len(steps)} temperature step(s)")
+    six = calibrate_steps(records, steps)
+    polys: dict[str, dict[str, TriadPoly]] = {"joint": {}, "two_stage": {}}
+    for triad in TRIADS:
+        if options.poly_order == "cv":
+            order, scores = cv_order(records, steps, triad, options.max_poly_order, options.poly_method,
+                                     options.t_ref_c)
+        else:
+            order, scores = max_order(len(steps), int(options.poly_order)), {}
+            if order < int(options.poly_order):
+                notes.append(f"{triad}: {len(steps)} temperature step(s) support a polynomial of order {order} "
+                             f"at most (asked for {options.poly_order})")
+        if progress:
+            progress(f"thermal polynomial ({triad}, order {order})")
+        joint = fit_joint(records, triad, order, options.t_ref_c)
+        joint.cv_scores = scores if options.poly_method == "joint" else {}
+        polys["joint"][triad] = joint
+        usable = [c for c in six[triad] if np.isfinite(c.params()).any()]
+        if len(usable) >= order + 1:
+            two = fit_two_stage(usable, order, options.t_ref_c, joint.t_min_c, joint.t_max_c)
+            two.cv_scores = scores if options.poly_method == "two_stage" else {}
+            polys["two_stage"][triad] = two
+    poly = {m: PolyModel(accel=p["accel"], gyro=p["gyro"]) for m, p in polys.items() if len(p) == 2}
+    if options.poly_method not in poly:
+        raise ValueError(f"the {options.poly_method} polynomial cannot be fitted from these records")
+    rbf: dict[str, RbfModel] = {}
+    for variant in options.rbf_variants:
+        rbf[variant] = train_rbf_model(records, variant, base=poly[options.poly_method], options=options.rbf,
+                                       progress=progress)
+    return Models(steps=steps, six_position=six, poly=poly, poly_method=options.poly_method, rbf=rbf, notes=notes)
+
+
+@dataclass
+class FitResult:
+    """Models, evaluation and provenance of one `fit_campaign` call (see `to_dict`)."""
+
+    options: FitOptions
+    models: Models
+    records: Records
+    evaluation: list[SplitResult]
+    provenance: dict[str, Any]
+    data_summary: dict[str, Any]
+    timings_s: dict[str, float]
+
+    @property
+    def polynomial(self) -> PolyModel:
+        return self.models.polynomial
+
+    @property
+    def rbf(self) -> RbfModel | None:
+        return self.models.rbf.get(self.options.rbf_export) if self.options.rbf_export else None
+
+    @property
+    def not_fitted(self) -> list[str]:
+        """What the data cannot support, in sentences (empty when everything was fitted)."""
+        out: list[str] = []
+        for p in self.models.poly.get(self.models.poly_method, self.polynomial).triads().values():
+            out.extend(p.not_fitted)
+        for triad, cals in self.models.six_position.items():
+            bad = [c for c in cals if c.not_fitted]
+            if bad and not any(triad in s for s in out):
+                temps = ", ".join(f"{c.temp_c:.1f}" for c in bad)
+                out.append(f"{triad}: six-position calibration incomplete at {temps} C ({bad[0].not_fitted[0]})")
+        for r in self.evaluation:
+            if r.skipped:
+                out.append(f"evaluation '{r.name}' skipped: {r.skipped}")
+        return out
+
+    @property
+    def notes(self) -> list[str]:
+        out = list(self.models.notes)
+        for p in self.polynomial.triads().values():
+            out.extend(p.notes)
+        for m in self.models.rbf.values():
+            out.extend(m.notes)
+        return list(dict.fromkeys(out))
+
+    def model_dicts(self) -> dict[str, Any]:
+        """The exported models: {"polynomial": ..., "rbf": ...} (what `export` writes)."""
+        out: dict[str, Any] = {"polynomial": self.polynomial.to_dict()}
+        if self.rbf is not None:
+            out["rbf"] = self.rbf.to_dict()
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: provenance, data summary, models, per-step calibration, evaluation."""
+        return {
+            "format": "labrunner-calibration/1",
+            "provenance": self.provenance,
+            "data": self.data_summary,
+            "options": _options_dict(self.options),
+            "not_fitted": self.not_fitted,
+            "notes": self.notes,
+            "models": self.model_dicts(),
+            "alternative_models": {
+                **{f"polynomial_{m}": p.to_dict() for m, p in self.models.poly.items() if m != self.models.poly_method},
+                **{f"rbf_{v}": {k: v2 for k, v2 in m.to_dict().items() if k != "base"}
+                   for v, m in self.models.rbf.items() if v != self.options.rbf_export},
+            },
+            "six_position": {t: [c.to_dict() for c in cals] for t, cals in self.models.six_position.items()},
+            "evaluation": [r.to_dict() for r in self.evaluation],
+            "timings_s": self.timings_s,
+        }
+
+
+def _options_dict(o: FitOptions) -> dict[str, Any]:
+    d = asdict(o)
+    d["rbf_variants"] = list(o.rbf_variants)
+    d["splits"] = list(o.splits)
+    d["rbf"]["widths"] = list(o.rbf.widths)
+    return d
+
+
+def summarize_data(frame: pd.DataFrame, records: Records, steps: TemperatureSteps) -> dict[str, Any]:
+    t = frame["t_s"].to_numpy(dtype=float)
+    temp = frame["imu_temp_c"].to_numpy(dtype=float)
+    per_step = []
+    for k in np.argsort(steps.temp_c):
+        sel = records.step == k
+        per_step.append({
+            "temp_c": round(float(steps.temp_c[k]), 3), "range_c": [float(steps.lo_c[k]), float(steps.hi_c[k])],
+            "records": int(sel.sum()),
+            "orientations": [ORIENTATIONS[i] for i in sorted(set(records.orientation[sel].tolist()))],
+        })
+    return {
+        "rows": int(len(frame)), "rows_in_records": int((records.row_record >= 0).sum()), "records": len(records),
+        "runs": int(frame["run"].nunique()),
+        "time_range_s": [float(t.min()), float(t.max())], "imu_temp_range_c": [float(temp.min()), float(temp.max())],
+        "orientations": sorted({str(o) for o in frame["orientation"].astype(str).unique()},
+                               key=lambda o: ORIENTATIONS.index(o)),
+        "table_rates_dps": sorted({round(float(r), 1) for r in records.rate_dps}),
+        "temperature_steps": per_step,
+    }
+
+
+def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provenance: dict[str, Any] | None = None,
+                 progress: Progress | None = None) -> FitResult:
+    """Fit the calibration models to a campaign frame (campaign CSV columns) and evaluate them.
+
+    Raises `UserError` when the data holds nothing that can be fitted; otherwise fits
+    what it can and lists the rest in `FitResult.not_fitted`.
+    """
+    opt = options or FitOptions()
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if progress:
+        progress(f"segmenting {len(frame):,} rows into records")
+    records = segment_records(frame, opt.records)
+    if len(records) == 0:
+        raise UserError("no stable records in the data: every stretch is shorter than "
+                        f"{opt.records.min_duration_s:g} s or drifts in temperature or rate")
+    timings["records"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    try:
+        models = fit_models(records, opt, progress)
+    except ValueError as exc:
+        raise UserError(f"cannot fit: {exc}") from None
+    timings["fit"] = time.perf_counter() - t1
+    evaluation: list[SplitResult] = []
+    if opt.evaluate:
+        t2 = time.perf_counter()
+        a = frame_arrays(frame)
+
+        def refit(train: Records) -> dict[str, object]:
+            return fit_models(train, opt).compensators()
+
+        evaluation = evaluate(a, records, models.steps, refit, opt.splits, opt.holdout_fraction, opt.eval_max_rows,
+                              opt.seed, progress)
+        timings["evaluation"] = time.perf_counter() - t2
+    prov = dict(provenance or {})
+    prov.setdefault("rows", int(len(frame)))
+    prov["software"] = {"name": "labrunner", "version": labrunner.__version__}
+    prov["fitted_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    return FitResult(options=opt, models=models, records=records, evaluation=evaluation, provenance=prov,
+                     data_summary=summarize_data(frame, records, models.steps), timings_s=timings)

@@ -1,0 +1,137 @@
+"""Six RBF networks that compensate a whole IMU (paper Sec. IV-D), and two improvements.
+
+Variants (``RbfModel.variant``):
+
+* ``paper``  one network per sensor axis, inputs (measured value of that axis, T),
+  output dU = true - measured (paper Fig. 1 and Eq. 11).
+* ``triad``  one network per axis whose inputs are the whole triad's measured values and
+  T, so cross-axis (misalignment) terms are visible to it; the per-axis network cannot
+  tell a misaligned reading on a resting axis from a bias.
+* ``hybrid`` the polynomial model first, then per-axis networks (inputs as ``paper``)
+  trained on what the polynomial leaves: the polynomial carries the physics (scale,
+  misalignment, smooth thermal drift) and the network the non-polynomial remainder.
+
+Networks train on record means weighted by duration (see `rbf.py`), never on raw samples.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .compensation import Compensated, compensate_poly
+from .rbf import DEFAULT_WIDTHS, RbfNetwork, train_rbf
+from .records import Records
+from .thermal_poly import PolyModel
+from .triads import CHANNELS
+
+VARIANTS: tuple[str, ...] = ("paper", "triad", "hybrid")
+
+
+@dataclass(frozen=True)
+class RbfOptions:
+    """Training settings of the networks."""
+
+    widths: tuple[float, ...] = DEFAULT_WIDTHS
+    max_centres: int = 80
+    max_candidates: int = 400
+    patience: int = 6
+    input_margin: float = 0.02  # inputs beyond the training range by more than this fraction are flagged
+
+
+@dataclass
+class RbfModel:
+    """Six networks (accel x y z, gyro x y z) and what they need at compensation time."""
+
+    variant: str
+    networks: list[RbfNetwork]
+    t_min_c: float
+    t_max_c: float
+    base: PolyModel | None = None  # hybrid only
+    input_margin: float = 0.02
+    notes: list[str] = field(default_factory=list)
+
+    def inputs(self, y: np.ndarray, temp_c: np.ndarray, channel: int) -> np.ndarray:
+        """(N, d) network inputs of one channel from outputs y (N, 6) and temperature."""
+        return network_inputs(self.variant, y, temp_c, channel)
+
+    def compensate(self, y: np.ndarray, temp_c: np.ndarray) -> Compensated:
+        y = np.asarray(y, dtype=float)
+        temp_c = np.asarray(temp_c, dtype=float)
+        if self.base is not None:
+            base = compensate_poly(self.base, y, temp_c)
+            out, extrap = base.values.copy(), base.extrapolated.copy()
+        else:
+            out = y.copy()
+            extrap = (temp_c < self.t_min_c) | (temp_c > self.t_max_c)
+        for k, net in enumerate(self.networks):
+            x = self.inputs(y, temp_c, k)
+            out[:, k] += net.predict(x)
+            extrap |= net.outside(x, self.input_margin)
+        return Compensated(values=out, extrapolated=extrap)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": "rbf", "variant": self.variant,
+            "inputs": {c: input_names(self.variant, k) for k, c in enumerate(CHANNELS)},
+            "output": "correction added to the measured value (paper Eq. 11)" if self.base is None
+            else "correction added to the polynomial model's compensated value",
+            "temperature_range_c": [self.t_min_c, self.t_max_c], "input_margin": self.input_margin,
+            "networks": {c: net.to_dict() for c, net in zip(CHANNELS, self.networks)},
+            "base": self.base.to_dict() if self.base is not None else None, "notes": self.notes,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> RbfModel:
+        lo, hi = d["temperature_range_c"]
+        return cls(variant=d["variant"], networks=[RbfNetwork.from_dict(d["networks"][c]) for c in CHANNELS],
+                   t_min_c=float(lo), t_max_c=float(hi),
+                   base=PolyModel.from_dict(d["base"]) if d.get("base") else None,
+                   input_margin=float(d.get("input_margin", 0.02)), notes=list(d.get("notes", [])))
+
+
+def input_names(variant: str, channel: int) -> list[str]:
+    cols = ("ax_g", "ay_g", "az_g", "gx_dps", "gy_dps", "gz_dps")
+    if variant == "triad":
+        base = 0 if channel < 3 else 3
+        return [cols[base], cols[base + 1], cols[base + 2], "imu_temp_c"]
+    return [cols[channel], "imu_temp_c"]
+
+
+def network_inputs(variant: str, y: np.ndarray, temp_c: np.ndarray, channel: int) -> np.ndarray:
+    if variant == "triad":
+        base = 0 if channel < 3 else 3
+        return np.column_stack([y[:, base:base + 3], temp_c])
+    return np.column_stack([y[:, channel], temp_c])
+
+
+def train_rbf_model(records: Records, variant: str = "paper", base: PolyModel | None = None,
+                    options: RbfOptions | None = None,
+                    progress: Callable[[str], None] | None = None) -> RbfModel:
+    """Train the six networks of a variant on record means (targets: true - measured, or
+    true - polynomial-compensated for ``hybrid``)."""
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown RBF variant {variant!r}; expected one of {', '.join(VARIANTS)}")
+    if variant == "hybrid" and base is None:
+        raise ValueError("the hybrid RBF variant needs the polynomial model it refines")
+    opt = options or RbfOptions()
+    y = records.mean
+    temp = records.temp_c
+    start = compensate_poly(base, y, temp).values if variant == "hybrid" else y
+    target = records.reference - start
+    w = records.duration_s
+    nets: list[RbfNetwork] = []
+    for k, name in enumerate(CHANNELS):
+        if progress:
+            progress(f"RBF ({variant}) {name}: {len(records)} records")
+        x = network_inputs(variant, y, temp, k)
+        nets.append(train_rbf(x, target[:, k], w, widths=opt.widths, max_centres=opt.max_centres,
+                              max_candidates=opt.max_candidates, patience=opt.patience))
+    notes: list[str] = []
+    if temp.size and np.ptp(temp) == 0:
+        notes.append("one temperature only: the networks cannot learn a temperature dependence")
+    return RbfModel(variant=variant, networks=nets, t_min_c=float(temp.min()), t_max_c=float(temp.max()),
+                    base=base if variant == "hybrid" else None, input_margin=opt.input_margin, notes=notes)

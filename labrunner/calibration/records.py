@@ -1,0 +1,313 @@
+"""Records and temperature steps: the units the calibration fits work on.
+
+A campaign CSV has no setpoint or step column, so structure is inferred from the rows:
+
+* a *segment* is a stretch of consecutive rows with the same run and orientation, a
+  steady table rate and no time gap (a gap is a row interval much longer than its
+  neighbours', so both 50 Hz samples and averaged rows work);
+* a *record* is a stable piece of a segment: segments that drift (chamber ramps, slow
+  table acceleration) are cut into pieces whose temperature and rate spans stay within
+  tolerances; pieces whose temperature still drifts (ramps, not soaks) and short ones
+  (table acceleration rows) are dropped.
+* *temperature steps* are clusters of record mean temperatures separated by gaps
+  (single linkage on sorted temperatures), which is robust to the orientations being
+  recorded at slightly different IMU temperatures.
+
+Fits use record means (the paper averages each orientation's measurements), weighted by
+the record's duration, i.e. by the number of raw samples it stands for.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from labrunner.campaign_csv import OUTPUT_COLUMNS
+from sims.imu_model import ORIENTATIONS, UP_VECTORS
+
+
+@dataclass(frozen=True)
+class RecordOptions:
+    """Tolerances of record segmentation and temperature-step clustering."""
+
+    gap_factor: float = 3.0  # a row interval > gap_factor x its neighbours' starts a new segment
+    rate_tol_dps: float = 0.05  # rate change that starts a new segment (plus rate_tol_rel x |rate|)
+    rate_tol_rel: float = 1e-3
+    temp_span_c: float = 0.5  # a record's temperature may span at most this much
+    max_drift_c_per_min: float = 0.05  # steadier than this counts as a soak ...
+    drift_allowance_c: float = 0.05  # ... give or take this (sensor quantisation)
+    min_duration_s: float = 5.0  # shorter records (acceleration rows, fragments) are dropped
+    step_gap_c: float = 2.0  # record temperatures further apart than this start a new step
+    max_step_width_c: float = 3.0  # a wider cluster (chained by slow soak drift) is split at its widest gap
+
+
+@dataclass
+class Records:
+    """Per-record summaries (struct of arrays, one entry per record) and the row labels.
+
+    `row_record[i]` is the record index of frame row i, or -1 for rows in no record.
+    `mean` holds mean outputs [ax ay az gx gy gz]; `reference` the true values in the
+    same layout (accelerometer: +1 g along up; gyro: table rate about up).
+    """
+
+    row_record: np.ndarray  # (n_rows,) int
+    run: np.ndarray  # (R,) int
+    orientation: np.ndarray  # (R,) int index into ORIENTATIONS
+    rate_dps: np.ndarray  # (R,) mean table rate
+    temp_c: np.ndarray  # (R,) mean IMU temperature
+    temp_span_c: np.ndarray  # (R,)
+    t_start_s: np.ndarray  # (R,)
+    t_end_s: np.ndarray  # (R,)
+    n_rows: np.ndarray  # (R,) rows contributing
+    row_interval_s: np.ndarray  # (R,) typical row interval
+    mean: np.ndarray  # (R, 6)
+    sem: np.ndarray  # (R, 6) standard error of the mean from the within-record scatter (nan if 1 row)
+    reference: np.ndarray  # (R, 6)
+    step: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (R,) step index, -1 none
+
+    def __len__(self) -> int:
+        return int(self.run.size)
+
+    @property
+    def duration_s(self) -> np.ndarray:
+        """Time each record stands for (rows x row interval): its weight in the fits."""
+        return self.n_rows * self.row_interval_s
+
+    @property
+    def up(self) -> np.ndarray:
+        return UP_VECTORS[self.orientation]
+
+    def subset(self, keep: np.ndarray) -> Records:
+        """The records selected by a boolean mask or index array (row labels renumbered)."""
+        idx = np.flatnonzero(keep) if np.asarray(keep).dtype == bool else np.asarray(keep, dtype=np.int64)
+        remap = np.full(len(self) + 1, -1, dtype=np.int64)
+        remap[idx] = np.arange(idx.size)
+        rows = remap[self.row_record]  # -1 maps via remap[-1] == -1
+        return Records(
+            row_record=rows, run=self.run[idx], orientation=self.orientation[idx], rate_dps=self.rate_dps[idx],
+            temp_c=self.temp_c[idx], temp_span_c=self.temp_span_c[idx], t_start_s=self.t_start_s[idx],
+            t_end_s=self.t_end_s[idx], n_rows=self.n_rows[idx], row_interval_s=self.row_interval_s[idx],
+            mean=self.mean[idx], sem=self.sem[idx], reference=self.reference[idx],
+            step=self.step[idx] if self.step.size else self.step,
+        )
+
+
+@dataclass
+class TemperatureSteps:
+    """Temperature steps inferred from record temperatures."""
+
+    temp_c: np.ndarray  # (K,) duration-weighted mean IMU temperature of each step
+    lo_c: np.ndarray  # (K,) lowest record temperature in the step
+    hi_c: np.ndarray  # (K,) highest
+    n_records: np.ndarray  # (K,)
+
+    def __len__(self) -> int:
+        return int(self.temp_c.size)
+
+
+def reference_values(orientation: np.ndarray, rate_dps: np.ndarray) -> np.ndarray:
+    """(N, 6) true specific force (g) and angular rate (deg/s) in the body frame."""
+    up = UP_VECTORS[np.asarray(orientation, dtype=np.int64)]
+    return np.concatenate([up, up * np.asarray(rate_dps, dtype=float)[:, None]], axis=1)
+
+
+def frame_arrays(frame: pd.DataFrame) -> dict[str, np.ndarray]:
+    """The numeric columns the analysis needs, as arrays (orientation as an index)."""
+    orient = frame["orientation"]
+    if isinstance(orient.dtype, pd.CategoricalDtype) and list(orient.cat.categories) == list(ORIENTATIONS):
+        codes = orient.cat.codes.to_numpy().astype(np.int64)
+    else:
+        codes = pd.Categorical(orient.astype(str), categories=list(ORIENTATIONS)).codes.astype(np.int64)
+    return {
+        "t": frame["t_s"].to_numpy(dtype=float),
+        "run": frame["run"].to_numpy(dtype=np.int64),
+        "orientation": codes,
+        "temp": frame["imu_temp_c"].to_numpy(dtype=float),
+        "rate": frame["table_rate_dps"].to_numpy(dtype=float),
+        "y": np.column_stack([frame[c].to_numpy(dtype=float) for c in OUTPUT_COLUMNS]),
+    }
+
+
+def _segment_starts(a: dict[str, np.ndarray], opt: RecordOptions) -> np.ndarray:
+    """Row indices where a new segment starts (always includes 0)."""
+    t, run, orient, rate = a["t"], a["run"], a["orientation"], a["rate"]
+    n = t.size
+    brk = np.zeros(n, dtype=bool)
+    brk[0] = True
+    if n < 2:
+        return np.flatnonzero(brk)
+    dt = np.diff(t)
+    brk[1:] |= (run[1:] != run[:-1]) | (orient[1:] != orient[:-1])
+    tol = opt.rate_tol_dps + opt.rate_tol_rel * np.maximum(np.abs(rate[1:]), np.abs(rate[:-1]))
+    brk[1:] |= np.abs(np.diff(rate)) > tol
+    # A gap is an interval much longer than the shorter of its neighbours' intervals.
+    pos = np.where(dt > 0, dt, np.inf)
+    prev = np.concatenate(([np.inf], pos[:-1]))
+    nxt = np.concatenate((pos[1:], [np.inf]))
+    ref = np.minimum(prev, nxt)
+    brk[1:] |= np.isfinite(ref) & (dt > opt.gap_factor * ref)
+    return np.flatnonzero(brk)
+
+
+def _stable_pieces(temp: np.ndarray, rate: np.ndarray, temp_tol: float, rate_tol: float) -> list[int]:
+    """Start offsets of greedy pieces whose temperature and rate spans stay within tolerance."""
+    starts = [0]
+    s, n = 0, temp.size
+    while True:
+        w = 256
+        while True:
+            tt, rr = temp[s:s + w], rate[s:s + w]
+            bad = np.flatnonzero((np.maximum.accumulate(tt) - np.minimum.accumulate(tt) > temp_tol)
+                                 | (np.maximum.accumulate(rr) - np.minimum.accumulate(rr) > rate_tol))
+            if bad.size or s + w >= n:
+                break
+            w *= 4
+        if not bad.size:
+            return starts
+        s += int(bad[0])
+        starts.append(s)
+
+
+def segment_records(frame: pd.DataFrame, options: RecordOptions | None = None) -> Records:
+    """Split campaign rows into records (see the module docstring)."""
+    opt = options or RecordOptions()
+    a = frame_arrays(frame)
+    n = a["t"].size
+    starts = _segment_starts(a, opt)
+    stops = np.append(starts[1:], n)
+    temp, rate = a["temp"], a["rate"]
+
+    # Split drifting segments (chamber ramps, slow table acceleration) into stable pieces;
+    # only the few segments that drift need a look.
+    span_t = np.maximum.reduceat(temp, starts) - np.minimum.reduceat(temp, starts)
+    span_r = np.maximum.reduceat(rate, starts) - np.minimum.reduceat(rate, starts)
+    rate_tol = opt.rate_tol_dps + opt.rate_tol_rel * np.maximum.reduceat(np.abs(rate), starts)
+    extra: list[np.ndarray] = []
+    for k in np.flatnonzero((span_t > opt.temp_span_c) | (span_r > rate_tol)):
+        s, e = starts[k], stops[k]
+        extra.append(s + np.asarray(_stable_pieces(temp[s:e], rate[s:e], opt.temp_span_c, float(rate_tol[k]))[1:],
+                                    dtype=np.int64))
+    if extra:
+        starts = np.unique(np.concatenate([starts, *extra]))
+        stops = np.append(starts[1:], n)
+
+    dt_all = np.diff(a["t"])
+    typical = float(np.median(dt_all[dt_all > 0])) if np.any(dt_all > 0) else 1.0
+    counts = stops - starts
+    span_time = a["t"][stops - 1] - a["t"][starts]
+    interval = np.where(counts > 1, span_time / np.maximum(counts - 1, 1), typical)
+    # Soaks only: a record whose temperature drifts (a ramp) is not a calibration point.
+    drift = np.abs(temp[stops - 1] - temp[starts])
+    keep = (counts > 0) & (counts * interval >= opt.min_duration_s) \
+        & (drift <= opt.max_drift_c_per_min * span_time / 60.0 + opt.drift_allowance_c)
+    starts, stops, interval = starts[keep], stops[keep], interval[keep]
+
+    row_record = np.full(n, -1, dtype=np.int64)
+    lengths = stops - starts
+    if starts.size:
+        # Label rows of kept records: a run-length fill via cumulative sums of +1/-1 markers.
+        marks = np.zeros(n + 1, dtype=np.int64)
+        np.add.at(marks, starts, 1)
+        np.add.at(marks, stops, -1)
+        inside = np.cumsum(marks[:-1]) > 0
+        ids = np.repeat(np.arange(starts.size), lengths)
+        row_record[inside] = ids
+    recs = records_from_labels(a, row_record, interval)
+    return recs
+
+
+def records_from_labels(a: dict[str, np.ndarray], row_record: np.ndarray, row_interval_s: np.ndarray,
+                        row_mask: np.ndarray | None = None) -> Records:
+    """Record summaries from row labels, optionally using only rows where `row_mask` is true.
+
+    With a mask (e.g. the training rows of a random split) records lose rows; records left
+    with no rows are dropped and the labels renumbered.
+    """
+    labels = row_record if row_mask is None else np.where(row_mask, row_record, -1)
+    n_rec = int(row_interval_s.size)
+    sel = labels >= 0
+    lab = labels[sel]
+    cnt = np.bincount(lab, minlength=n_rec).astype(float)
+    present = cnt > 0
+    if not present.all():
+        remap = np.full(n_rec + 1, -1, dtype=np.int64)
+        remap[np.flatnonzero(present)] = np.arange(int(present.sum()))
+        labels = remap[labels]
+        lab = labels[sel]
+        cnt = cnt[present]
+        row_interval_s = row_interval_s[present]
+        n_rec = int(present.sum())
+
+    def mean_of(x: np.ndarray) -> np.ndarray:
+        return np.bincount(lab, weights=x[sel], minlength=n_rec) / np.maximum(cnt, 1)
+
+    def first_of(x: np.ndarray) -> np.ndarray:
+        out = np.empty(n_rec, dtype=x.dtype)
+        idx = np.flatnonzero(sel)
+        # Rows are in order, so the first occurrence of each label is its first row.
+        uniq, first = np.unique(lab, return_index=True)
+        out[uniq] = x[idx[first]]
+        return out
+
+    temp = mean_of(a["temp"])
+    t_all = a["t"]
+    t_start = first_of(t_all)
+    idx = np.flatnonzero(sel)
+    uniq, last_rev = np.unique(lab[::-1], return_index=True)
+    t_end = np.empty(n_rec)
+    t_end[uniq] = t_all[idx[::-1][last_rev]]
+    tmax = np.full(n_rec, -np.inf)
+    tmin = np.full(n_rec, np.inf)
+    np.maximum.at(tmax, lab, a["temp"][sel])
+    np.minimum.at(tmin, lab, a["temp"][sel])
+    rate = mean_of(a["rate"])
+    orient = first_of(a["orientation"])
+    run = first_of(a["run"])
+    y = a["y"][sel]
+    mean = np.column_stack([np.bincount(lab, weights=y[:, j], minlength=n_rec) for j in range(6)]) / cnt[:, None]
+    sq = np.column_stack([np.bincount(lab, weights=(y[:, j] - mean[lab, j]) ** 2, minlength=n_rec)
+                          for j in range(6)])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sem = np.sqrt(sq / (cnt[:, None] - 1) / cnt[:, None])
+    sem[cnt <= 1] = np.nan
+    return Records(
+        row_record=labels, run=run, orientation=orient, rate_dps=rate, temp_c=temp, temp_span_c=tmax - tmin,
+        t_start_s=t_start, t_end_s=t_end, n_rows=cnt, row_interval_s=np.asarray(row_interval_s, dtype=float),
+        mean=mean, sem=sem, reference=reference_values(orient, rate), step=np.full(n_rec, -1, dtype=np.int64),
+    )
+
+
+def _split_wide(ts: np.ndarray, new: np.ndarray, max_width: float) -> np.ndarray:
+    """Split clusters of sorted temperatures wider than max_width at their widest gaps."""
+    new = new.copy()
+    while True:
+        bounds = np.append(np.flatnonzero(new), ts.size)
+        wide = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a > 1 and ts[b - 1] - ts[a] > max_width]
+        if not wide:
+            return new
+        for a, b in wide:
+            new[a + 1 + int(np.argmax(np.diff(ts[a:b])))] = True
+
+
+def temperature_steps(records: Records, gap_c: float = 2.0, max_width_c: float = 3.0) -> TemperatureSteps:
+    """Cluster record temperatures into steps and set `records.step` (in place)."""
+    if len(records) == 0:
+        records.step = np.zeros(0, dtype=np.int64)
+        return TemperatureSteps(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
+    order = np.argsort(records.temp_c, kind="stable")
+    ts = records.temp_c[order]
+    new = _split_wide(ts, np.concatenate(([True], np.diff(ts) > gap_c)), max_width_c)
+    cluster_sorted = np.cumsum(new) - 1
+    step = np.empty(len(records), dtype=np.int64)
+    step[order] = cluster_sorted
+    records.step = step
+    k = int(cluster_sorted[-1]) + 1
+    w = records.duration_s
+    temp = np.bincount(step, weights=w * records.temp_c, minlength=k) / np.bincount(step, weights=w, minlength=k)
+    lo = np.full(k, np.inf)
+    hi = np.full(k, -np.inf)
+    np.minimum.at(lo, step, records.temp_c)
+    np.maximum.at(hi, step, records.temp_c)
+    return TemperatureSteps(temp_c=temp, lo_c=lo, hi_c=hi, n_records=np.bincount(step, minlength=k))

@@ -1,0 +1,107 @@
+"""`labrunner sim serve`: the simulated chamber, rate table and IMU as standalone servers on loopback."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from labrunner.clock import ScaledClock
+from labrunner.errors import UserError
+from labrunner.yaml_config import ConfigError, load_yaml
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    sim = sub.add_parser("sim", help="simulated instruments")
+    sim_sub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND")
+    serve = sim_sub.add_parser(
+        "serve", help="serve the simulated chamber, rate table and IMU on loopback",
+        description="Start the three simulated instruments as servers (Modbus TCP/RTU chamber, serial-over-TCP "
+                    "or pty rate table and IMU) so a lab configuration can be rehearsed from another process.")
+    serve.add_argument("--speed", type=float, default=1.0, help="simulated time runs N times faster than wall time")
+    serve.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback only)")
+    serve.add_argument("--chamber-port", type=int, default=0, help="Modbus port (0: any free port)")
+    serve.add_argument("--table-port", type=int, default=0)
+    serve.add_argument("--imu-port", type=int, default=0)
+    serve.add_argument("--chamber-transport", choices=("tcp", "rtu"), default="tcp",
+                       help="Modbus TCP, or RTU framing over a TCP socket (socket://)")
+    serve.add_argument("--profile", default="watlow_f4", help="chamber register-map profile")
+    serve.add_argument("--link", choices=("tcp", "pty"), default="tcp",
+                       help="serial lines as socket:// ports or as pseudo-terminals")
+    serve.add_argument("--config", type=Path, help="sim configuration (YAML): seed, plant parameters, IMU model, faults")
+    serve.add_argument("--lab-config", type=Path, help="also write a lab configuration (YAML) pointing at these sims")
+    serve.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    serve.set_defaults(func=serve_command)
+    sim.set_defaults(func=lambda args: (sim.print_help(), 2)[1])
+
+
+def load_sim_config(path: Path | None) -> Any:
+    from sims.world import SimLabConfig
+
+    if path is None:
+        return SimLabConfig()
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError([f"{path}: cannot read: {exc}"]) from None
+    data, _ = load_yaml(text, str(path))
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError([f"{path}:1: a sim configuration must be a mapping"])
+    try:
+        return SimLabConfig.from_dict(data)
+    except (ValueError, TypeError, OSError) as exc:
+        raise ConfigError([f"{path}: {exc}"]) from None
+
+
+def serve_command(args: argparse.Namespace) -> int:
+    import yaml
+
+    from sims.lab import SimLab, SimPorts
+
+    if args.speed <= 0:
+        raise UserError("--speed must be > 0")
+    config = load_sim_config(args.config)
+    clock = ScaledClock(args.speed)
+    try:
+        lab = SimLab(config, clock, host=args.host, link=args.link, chamber_transport=args.chamber_transport,
+                     chamber_profile=args.profile,
+                     ports=SimPorts(chamber=args.chamber_port, table=args.table_port, imu=args.imu_port))
+    except OSError as exc:
+        raise UserError(f"cannot start the simulated lab: {exc}") from None
+    lab_config = lab.lab_config()
+    lab_config["clock"] = {"speed": args.speed}
+    if args.lab_config:
+        args.lab_config.write_text(yaml.safe_dump(lab_config, sort_keys=False))
+    info = {
+        "chamber": lab.chamber.url if args.chamber_transport == "rtu" else f"modbus-tcp://{args.host}:{lab.chamber.port}",
+        "chamber_profile": args.profile,
+        "table": lab.table_port.url,
+        "imu": lab.imu_port.url,
+        "speed": args.speed,
+    }
+    print("labrunner sim serve: simulated lab running (Ctrl-C to stop)")
+    for key, value in info.items():
+        print(f"  {key:16s} {value}")
+    print("  ready " + json.dumps(info), flush=True)
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    t_end = None if args.duration is None else time.monotonic() + args.duration
+    try:
+        while not stop.is_set():
+            if t_end is not None and time.monotonic() >= t_end:
+                break
+            stop.wait(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        lab.close()
+    print("labrunner sim serve: stopped", file=sys.stderr)
+    return 0

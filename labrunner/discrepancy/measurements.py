@@ -1,0 +1,119 @@
+"""Measured campaign rows as the arrays the error model needs.
+
+The campaign CSV gives outputs and the conditions; the reference values follow from
+each row (DESIGN.md): +1 g along the up axis, the table rate about the up axis, Earth
+rate neglected. What the analysis fits is the *error*: measured output minus reference.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from labrunner.campaign_csv import OUTPUT_COLUMNS, read_campaign
+from sims.imu_model import CHANNELS, UP_VECTORS, ImuInputs, orientation_index
+
+# Below this quantum a logger's temperature steps cannot fake heating/cooling reversals.
+_MIN_COARSE_QUANTUM_C = 0.05
+
+
+@dataclass
+class Measurements:
+    """One campaign, rows in time order within each run."""
+
+    t_s: np.ndarray  # (N,) s
+    run: np.ndarray  # (N,) power-on counter
+    orientation: np.ndarray  # (N,) index into sims.imu_model.ORIENTATIONS
+    temp_c: np.ndarray  # (N,) IMU temperature sensor
+    chamber_c: np.ndarray  # (N,) chamber air, NaN when not logged
+    table_rate_dps: np.ndarray  # (N,)
+    force_g: np.ndarray  # (N, 3) reference specific force, body frame
+    rate_dps: np.ndarray  # (N, 3) reference angular rate, body frame
+    t_on_s: np.ndarray  # (N,) time since the run's first row
+    output: np.ndarray  # (N, 6) measured, channel order sims.imu_model.CHANNELS
+    row_dt_s: float  # typical spacing of consecutive rows within a run
+    temperature_quantum_c: float | None  # the logger's temperature step, when it is coarse
+
+    def __len__(self) -> int:
+        return int(self.t_s.size)
+
+    @property
+    def reference(self) -> np.ndarray:
+        """(N, 6) what an ideal IMU would output."""
+        return np.concatenate([self.force_g, self.rate_dps], axis=1)
+
+    @property
+    def error(self) -> np.ndarray:
+        """(N, 6) measured minus reference: what the error model has to explain."""
+        return self.output - self.reference
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return CHANNELS
+
+    def imu_inputs(self) -> ImuInputs:
+        """The rows as inputs of `sims.imu_model.ImuModel` (to evaluate a model on this campaign)."""
+        return ImuInputs(t_s=self.t_s, run=self.run, t_on_s=self.t_on_s, temp_c=self.temp_c,
+                         force_g=self.force_g, rate_dps=self.rate_dps)
+
+    @classmethod
+    def from_frame(cls, frame: pd.DataFrame) -> Measurements:
+        """From a frame in campaign-CSV columns (validated by `read_campaign`)."""
+        frame = read_campaign(frame)
+        run = frame["run"].to_numpy(dtype=np.int64)
+        t = frame["t_s"].to_numpy(dtype=float)
+        order = _time_order(t, run)
+        frame = frame.iloc[order].reset_index(drop=True)
+        run = run[order]
+        t = t[order]
+        orient = orientation_index(frame["orientation"].astype(str).to_numpy())
+        up = UP_VECTORS[orient]
+        table = frame["table_rate_dps"].to_numpy(dtype=float)
+        temp = frame["imu_temp_c"].to_numpy(dtype=float)
+        first = pd.Series(t).groupby(run).transform("min").to_numpy()
+        return cls(
+            t_s=t, run=run, orientation=orient, temp_c=temp,
+            chamber_c=frame["chamber_c"].to_numpy(dtype=float), table_rate_dps=table,
+            force_g=up.copy(), rate_dps=up * table[:, None], t_on_s=t - first,
+            output=frame.loc[:, list(OUTPUT_COLUMNS)].to_numpy(dtype=float),
+            row_dt_s=_row_spacing(t, run), temperature_quantum_c=_quantum(temp),
+        )
+
+
+def _time_order(t: np.ndarray, run: np.ndarray) -> np.ndarray:
+    """Row order for the recursions: as given when time never goes back, else run by run.
+
+    A campaign's clock normally runs on across power-ons; if it restarts per run the
+    runs are kept in order of first appearance, each in time order.
+    """
+    if t.size < 2 or np.all(np.diff(t) >= 0):
+        return np.arange(t.size)
+    _, first_pos = np.unique(run, return_index=True)
+    rank = np.empty(run.max() - run.min() + 1, dtype=np.int64)
+    rank[run[np.sort(first_pos)] - run.min()] = np.arange(first_pos.size)
+    return np.lexsort((t, rank[run - run.min()]))
+
+
+def _row_spacing(t: np.ndarray, run: np.ndarray) -> float:
+    d = np.diff(t)[run[1:] == run[:-1]]
+    d = d[d > 0]
+    return float(np.median(d)) if d.size else 1.0
+
+
+def _quantum(temp: np.ndarray) -> float | None:
+    """The temperature step of a coarse logger (all values on a grid), or None."""
+    values = np.unique(np.round(temp, 6))
+    if values.size < 3:
+        return None
+    steps = np.diff(values)
+    q = float(steps.min())
+    if q < _MIN_COARSE_QUANTUM_C:
+        return None
+    k = values / q
+    return q if np.all(np.abs(k - np.round(k)) < 1e-3) else None
+
+
+def channel_index(name: str) -> int:
+    return CHANNELS.index(name)

@@ -1,0 +1,183 @@
+"""The simulated chamber controller: a real pymodbus server (TCP, or RTU framing over socket://).
+
+Registers follow a `drivers.chamber_profiles.ChamberProfile`. Every request runs the
+action hook, which brings the chamber plant to the clock's current time and puts
+process value, setpoint, outputs and limits into the registers, or applies a
+setpoint write (refusing values outside the controller's range, like the real one).
+Faults (timeouts, exception replies, garbage process value, dropped and refused
+connections) are switched through `ChamberFaults`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+
+from pymodbus.constants import ExcCodes
+from pymodbus.framer import FramerType
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from drivers.chamber_profiles import ChamberProfile, profile_from
+from labrunner.clock import Clock
+
+from .aio import LoopThread
+from .world import SimWorld
+
+READ_FCS = {3, 4}
+WRITE_FCS = {6, 16}
+
+
+@dataclass
+class ChamberFaults:
+    """Switchable misbehaviour of the simulated controller."""
+
+    exception_code: int | None = None  # answer every request with this Modbus exception
+    exception_count: int = 0  # ... for this many requests (0 = while set)
+    silent: bool = False  # do not answer at all (the client times out)
+    garbage_pv: bool = False  # process value register reads a sensor-break pattern
+
+    def clear(self) -> None:
+        self.exception_code = None
+        self.exception_count = 0
+        self.silent = False
+        self.garbage_pv = False
+
+
+class ChamberServer:
+    """Serves one `SimWorld`'s chamber over Modbus."""
+
+    def __init__(self, world: SimWorld, clock: Clock, profile: ChamberProfile | str = "watlow_f4", *,
+                 transport: str = "tcp", host: str = "127.0.0.1", port: int = 0, device_id: int = 1,
+                 loop: LoopThread | None = None) -> None:
+        self.world = world
+        self.clock = clock
+        self.profile = profile_from(profile) if isinstance(profile, str) else profile
+        self.transport = transport
+        self.host = host
+        self.device_id = device_id
+        self.faults = ChamberFaults()
+        self.requests = 0
+        self._loop = loop or LoopThread("sim-chamber")
+        self._own_loop = loop is None
+        regs = self.profile.registers()
+        top = max(regs.values()) + self.profile.words + 1
+        device = SimDevice(id=device_id, simdata=[SimData(address=0, count=top, values=0, datatype=DataType.REGISTERS)],
+                           action=self._action)
+        self._server = self._loop.run(self._start(device, port))
+        self.port = self._server.transport.sockets[0].getsockname()[1]
+
+    async def _start(self, device: SimDevice, port: int) -> ModbusTcpServer | ModbusSerialServer:
+        if self.transport == "tcp":
+            server: ModbusTcpServer | ModbusSerialServer = ModbusTcpServer(device, address=(self.host, port))
+        elif self.transport == "rtu":
+            if port == 0:
+                port = _free_port(self.host)
+            server = ModbusSerialServer(device, port=f"socket://{self.host}:{port}", framer=FramerType.RTU,
+                                        baudrate=115200)
+        else:
+            raise ValueError(f"chamber sim transport must be 'tcp' or 'rtu', got {self.transport!r}")
+        await server.serve_forever(background=True)
+        return server
+
+    @property
+    def url(self) -> str:
+        return f"socket://{self.host}:{self.port}" if self.transport == "rtu" else f"{self.host}:{self.port}"
+
+    # --- the register hook ------------------------------------------------------------
+
+    def _put(self, regs: list[int], start: int, register: int | None, value: float, *, output: bool = False) -> None:
+        if register is None:
+            return
+        words = self.profile.encode(value, output=output)
+        i = register - start
+        if 0 <= i and i + len(words) <= len(regs):
+            regs[i:i + len(words)] = words
+
+    def _refresh(self, regs: list[int], start: int) -> None:
+        p = self.profile
+        plant = self.world.chamber
+        with self.world.lock:
+            self.world.advance(self.clock.now())
+            pv = plant.air_c
+            if self.faults.garbage_pv:
+                # A broken thermocouple: the F4 shows a huge value; float maps get NaN.
+                if p.encoding == "int16_tenths":
+                    i = p.process_value - start
+                    if 0 <= i < len(regs):
+                        regs[i] = 0x7FFF
+                    pv = None
+                else:
+                    pv = float("nan")
+            if pv is not None:
+                self._put(regs, start, p.process_value, pv)
+            self._put(regs, start, p.setpoint, plant.setpoint_c)
+            self._put(regs, start, p.heat_output, plant.heat_output_pct, output=True)
+            self._put(regs, start, p.cool_output, plant.cool_output_pct, output=True)
+            self._put(regs, start, p.setpoint_min, plant.p.setpoint_min_c)
+            self._put(regs, start, p.setpoint_max, plant.p.setpoint_max_c)
+            if p.model_register is not None and p.model_code is not None:
+                regs[p.model_register - start] = p.model_code & 0xFFFF
+
+    async def _action(self, fc: int, start: int, address: int, count: int, regs: list[int],
+                      set_values: list[int] | list[bool] | None) -> ExcCodes | None:
+        self.requests += 1
+        f = self.faults
+        if f.silent:
+            await asyncio.sleep(3600)
+            return ExcCodes.DEVICE_BUSY
+        if f.exception_code is not None:
+            if f.exception_count:
+                f.exception_count -= 1
+                code = f.exception_code
+                if f.exception_count == 0:
+                    f.exception_code = None
+            else:
+                code = f.exception_code
+            return ExcCodes(code)
+        if fc in WRITE_FCS:
+            if set_values is None:
+                return None
+            return self._write(start, address, [int(v) for v in set_values], regs)
+        self._refresh(regs, start)
+        return None
+
+    def _write(self, start: int, address: int, values: list[int], regs: list[int]) -> ExcCodes | None:
+        p = self.profile
+        if address != p.setpoint or len(values) != p.words:
+            return ExcCodes.ILLEGAL_ADDRESS  # only the setpoint is writable here
+        value = p.decode(values)
+        plant = self.world.chamber
+        if not (plant.p.setpoint_min_c <= value <= plant.p.setpoint_max_c):
+            return ExcCodes.ILLEGAL_VALUE
+        with self.world.lock:
+            self.world.advance(self.clock.now())
+            plant.set_setpoint(value)
+        return None
+
+    # --- connection faults ---------------------------------------------------------------
+
+    def drop_connections(self) -> int:
+        """Close every client connection (the client sees the link drop)."""
+        async def drop() -> int:
+            conns = list(self._server.active_connections.values())
+            for c in conns:
+                c.close()
+            return len(conns)
+        return self._loop.run(drop())
+
+    def close(self) -> None:
+        try:
+            self._loop.run(self._server.shutdown())
+        except Exception:
+            pass
+        if self._own_loop:
+            self._loop.stop()
+
+
+def _free_port(host: str) -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]

@@ -1,0 +1,125 @@
+"""The simulated IMU: a stream of binary frames (drivers.imu_frames) at its output rate.
+
+Frames exist for every sample time t_on + k / rate up to the clock's time while the
+IMU is powered; `emit_until(t)` sends the ones not sent yet. With a virtual clock it
+is a clock listener (called in the sleeping thread, so a dry run is deterministic);
+with a wall or scaled clock a ticker thread calls it. Faults: stalls, corrupt bursts,
+frame-counter gaps, and the link dropping (see `ImuFaults`).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.imu_frames import FRAME_SIZE, encode_frames
+from labrunner.clock import Clock
+
+from .imu_model import ModelState
+from .links import SimPort
+from .world import SimWorld
+
+MAX_CHUNK_S = 60.0  # generate long sleeps in pieces to bound memory
+
+
+@dataclass
+class ImuFaults:
+    stall_until: float | None = None  # send nothing until this clock time (frames are lost)
+    corrupt_frames: int = 0  # corrupt this many of the next frames (a burst)
+    skip_frames: int = 0  # drop this many of the next frames (counter gap)
+
+
+class ImuStreamSim:
+    def __init__(self, world: SimWorld, clock: Clock, port: SimPort, rate_hz: float = 50.0, seed: int = 0) -> None:
+        self.world = world
+        self.clock = clock
+        self.port = port
+        self.rate_hz = float(rate_hz)
+        self.faults = ImuFaults()
+        self.state = ModelState()
+        self._rng = np.random.default_rng([seed, 0x1A2B])
+        self._fault_rng = np.random.default_rng([seed, 0xFA17])
+        self._run = world.run
+        self._next_k = 0
+        self.frames_sent = 0
+        self.last_sent_counter: int | None = None  # counter of the last intact frame put on the line
+        self._lock = threading.Lock()
+        self._ticker: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    def emit_until(self, t: float) -> None:
+        """Send all frames with sample time <= t that have not been sent."""
+        with self._lock:
+            while True:
+                chunk = self._next_chunk(t)
+                if chunk is None:
+                    return
+                self._send(*chunk)
+
+    def _next_chunk(self, t: float) -> tuple[np.ndarray, bytes] | None:
+        w = self.world
+        with w.lock:
+            if w.run != self._run:  # power-cycled: the counter starts again
+                self._run = w.run
+                self._next_k = 0
+                self.last_sent_counter = None
+            if not w.powered:
+                return None
+            k_last = math.floor((t - w.t_on) * self.rate_hz + 1e-9)
+            if k_last < self._next_k:
+                return None
+            k_last = min(k_last, self._next_k + int(MAX_CHUNK_S * self.rate_hz) - 1)
+            ks = np.arange(self._next_k, k_last + 1)
+            times = w.t_on + ks / self.rate_hz
+            w.advance(float(times[-1]))
+            inputs = w.imu_inputs(times)
+            out, self.state = w.model.simulate(inputs, self.rate_hz, self._rng, self.state)
+            self._next_k = k_last + 1
+        return ks, encode_frames(ks, out[:, :3], out[:, 3:], inputs.temp_c)
+
+    def _send(self, ks: np.ndarray, data: bytes) -> None:
+        f = self.faults
+        keep = np.ones(ks.size, dtype=bool)
+        if f.stall_until is not None:
+            times = self.world.t_on + ks / self.rate_hz
+            keep &= times >= f.stall_until  # stalled: these frames never leave the IMU
+            if keep.any():
+                f.stall_until = None
+        if f.skip_frames:
+            n = min(f.skip_frames, ks.size)
+            keep[:n] = False
+            f.skip_frames -= n
+        raw = np.frombuffer(data, dtype=np.uint8).reshape(ks.size, FRAME_SIZE).copy()
+        intact = keep.copy()
+        if f.corrupt_frames:
+            n = min(f.corrupt_frames, int(keep.sum()))
+            idx = np.flatnonzero(keep)[:n]
+            pos = self._fault_rng.integers(2, FRAME_SIZE, size=n)
+            raw[idx, pos] ^= self._fault_rng.integers(1, 256, size=n).astype(np.uint8)
+            intact[idx] = False
+            f.corrupt_frames -= n
+        if not keep.all() or not intact.all():
+            payload = raw[keep].tobytes()
+        else:
+            payload = data
+        if payload and self.port.write(payload) == len(payload) and intact.any():
+            self.last_sent_counter = int(ks[np.flatnonzero(intact)[-1]]) % 65536
+        self.frames_sent += int(keep.sum())
+
+    # --- real-time operation (wall or scaled clock) -------------------------------------------
+
+    def start_ticker(self, period_s: float = 0.02) -> None:
+        def tick() -> None:
+            while not self._stop.wait(period_s):
+                self.emit_until(self.clock.now())
+
+        self._ticker = threading.Thread(target=tick, name="sim-imu", daemon=True)
+        self._ticker.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._ticker is not None:
+            self._ticker.join(timeout=2)

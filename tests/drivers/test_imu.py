@@ -1,0 +1,103 @@
+"""The IMU stream driver against the simulated IMU, over TCP and a pty, with damaged streams."""
+
+import numpy as np
+import pytest
+
+from drivers.imu_frames import FRAME_SIZE, FrameDecoder
+from drivers.imu_serial import SerialImu
+from sims.imu_stream import ImuStreamSim
+from sims.links import PtyPort, TcpSerialPort
+
+
+@pytest.fixture(params=["tcp", "pty"])
+def stream(request, world, clock):
+    port = TcpSerialPort() if request.param == "tcp" else PtyPort()
+    sim = ImuStreamSim(world, clock, port, rate_hz=50.0, seed=1)
+    drv = SerialImu(port.url, rate_hz=50.0)
+    drv.connect()
+    if isinstance(port, TcpSerialPort):
+        assert port.wait_connected(2.0)
+    clock.add_listener(sim.emit_until)
+    clock.add_barrier(lambda: sim.last_sent_counter is None or drv.wait_counter16(sim.last_sent_counter, 1.0))
+    yield drv, sim, port, clock
+    drv.close()
+    sim.close()
+    port.close()
+
+
+def test_records_are_consecutive_frames_in_physical_units(stream, world):
+    drv, sim, port, clock = stream
+    clock.sleep(10.0)
+    start = drv.begin_record()
+    clock.sleep(60.0)
+    rec = drv.end_record(start, 3000, timeout_s=1.0)
+    assert len(rec) == 3000 and rec.dropped == 0 and rec.corrupt == 0
+    assert np.array_equal(rec.counter, np.arange(start + 1, start + 3001))
+    assert rec.accel_g.mean(axis=0)[2] == pytest.approx(1.0, abs=0.05)  # z up: about +1 g
+    assert rec.temp_c.mean() == pytest.approx(world.imu_temperature_at(np.array([clock.now()]))[0], abs=0.5)
+    assert drv.latest().counter == start + 3000
+
+
+def test_corrupt_and_missing_frames_are_counted_and_the_stream_resyncs(stream):
+    drv, sim, port, clock = stream
+    clock.sleep(1.0)
+    start = drv.begin_record()
+    sim.faults.corrupt_frames = 7
+    sim.faults.skip_frames = 4
+    clock.sleep(60.0)
+    rec = drv.end_record(start, 3000, timeout_s=0.2)
+    assert rec.dropped == 11 and len(rec) == 2989
+    assert rec.corrupt == 7
+    start = drv.begin_record()
+    clock.sleep(10.0)
+    assert drv.end_record(start, 500, timeout_s=0.2).dropped == 0  # back in step
+
+
+def test_stream_stall_is_seen_as_dropped_frames(stream):
+    drv, sim, port, clock = stream
+    clock.sleep(1.0)
+    start = drv.begin_record()
+    sim.faults.stall_until = clock.now() + 20.0
+    clock.sleep(60.0)
+    rec = drv.end_record(start, 3000, timeout_s=0.2)
+    assert rec.dropped == pytest.approx(1000, abs=1)
+
+
+def test_counter_wraps_without_losing_order(stream):
+    drv, sim, port, clock = stream
+    clock.sleep(1400.0)  # 70 000 frames: past the 16-bit counter
+    start = drv.begin_record()
+    clock.sleep(2.0)
+    rec = drv.end_record(start, 100, timeout_s=0.5)
+    assert start > 65536 and np.array_equal(rec.counter, np.arange(start + 1, start + 101))
+
+
+def test_link_that_disappears_comes_back():
+    events = []
+    port = TcpSerialPort()
+    drv = SerialImu(port.url, rate_hz=50.0, reopen_s=0.05, on_event=lambda k, m: events.append(k))
+    drv.connect()
+    try:
+        assert port.wait_connected(2.0)
+        port.disconnect()
+        import time
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and "imu_link_restored" not in events:
+            time.sleep(0.05)
+        assert events[:2] == ["imu_link_lost", "imu_link_restored"]
+        assert port.wait_connected(2.0)
+    finally:
+        drv.close()
+        port.close()
+
+
+def test_decoder_counts_a_corrupt_stretch_once_however_bytes_arrive():
+    from drivers.imu_frames import encode_frames
+
+    n = 50
+    raw = bytearray(encode_frames(np.arange(n), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)))
+    raw[10 * FRAME_SIZE: 13 * FRAME_SIZE] = bytes(3 * FRAME_SIZE)  # three frames wiped
+    for step in (1, 7, 64, len(raw)):
+        dec = FrameDecoder()
+        got = sum(len(dec.feed(bytes(raw[i:i + step]))) for i in range(0, len(raw), step))
+        assert got == n - 3 and dec.corrupt == 3, step
