@@ -233,4 +233,5 @@ class SerialImu:
             accel = gyro = np.zeros((0, 3))
             temp = np.zeros(0)
         return ImuRecord(counter=counter, accel_g=accel, gyro_dps=gyro, temp_c=temp, expected=n_frames,
-                         dropped=n_frames - int(counter.size), corrupt=corrupt)
+                         dropped=n_frames - int(counter.size), corrupt=corrupt,
+                         lsb=(ACCEL_LSB_G, GYRO_LSB_DPS, TEMP_LSB_C))

@@ -69,6 +69,7 @@ class ImuRecord:
     expected: int  # frames the window should hold
     dropped: int  # expected minus received (counter gaps)
     corrupt: int  # corrupted stretches seen while recording
+    lsb: tuple[float, float, float] | None = None  # accel, gyro, temp LSB when values are whole counts
 
     def __len__(self) -> int:
         return int(self.counter.size)

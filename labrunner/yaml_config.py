@@ -87,6 +87,8 @@ def _describe(err: Mapping[str, Any]) -> str:
         return "must be a mapping of keys to values"
     if kind == "literal_error":
         return f"must be one of {ctx.get('expected')}, got {err.get('input')!r}"
+    if kind == "enum":
+        return f"must be one of {ctx.get('expected')}, got {err.get('input')!r}"
     if kind == "too_short":
         return f"must have at least {ctx.get('min_length')} item(s)"
     if kind == "too_long":

@@ -48,10 +48,22 @@ class SimLab:
             clock.add_listener(self.imu.emit_until)
         else:
             self.imu.start_ticker()
+        self._apply_plant_faults(config.faults.get("chamber") or {})
         self.host = host
         self.link = link
         self.chamber_transport = chamber_transport
         self.chamber_profile = chamber_profile
+
+    def _apply_plant_faults(self, spec: dict[str, Any]) -> None:
+        """Faults present from the start, from the sim configuration (e.g. a failed compressor)."""
+        known = {"heater_failed", "compressor_failed"}
+        unknown = set(spec) - known
+        if unknown:
+            raise ValueError(f"sim configuration faults.chamber: unknown key(s) {', '.join(sorted(unknown))}; "
+                             f"known: {', '.join(sorted(known))}")
+        plant = self.world.chamber
+        plant.heater_failed = bool(spec.get("heater_failed", False))
+        plant.compressor_failed = bool(spec.get("compressor_failed", False))
 
     def lab_config(self) -> dict[str, Any]:
         """A lab configuration (see `labrunner.lab`) that points the drivers at these sims."""

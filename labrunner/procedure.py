@@ -1,0 +1,327 @@
+"""Procedures: YAML -> validated model -> the expanded list of record steps.
+
+A procedure states the temperatures (a list or start/stop/step, and the order they
+are visited in), how a soak is judged, the orientations with the operator's prompt
+for each remount, the rate schedule (a list or the paper's triangular pattern),
+settle and record durations, the IMU sample rate, safety limits, the fault policy
+and the fit to run at the end. Errors name the file, line and key.
+
+The loop order is orientation (a remount: six per campaign, at ambient) > temperature
+(a soak) > rate (a record step). With the serpentine order, temperatures are visited
+upwards for one orientation and downwards for the next, so the data hold both
+heating and cooling branches.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from labrunner.yaml_config import ConfigError, load_yaml, validate
+from sims.imu_model import ORIENTATIONS
+
+OrientationName = Literal["x_up", "x_down", "y_up", "y_down", "z_up", "z_down"]
+
+DEFAULT_PROMPTS = {
+    "x_up": "Mount the IMU with its x axis pointing up.",
+    "x_down": "Mount the IMU with its x axis pointing down.",
+    "y_up": "Mount the IMU with its y axis pointing up.",
+    "y_down": "Mount the IMU with its y axis pointing down.",
+    "z_up": "Mount the IMU with its z axis pointing up.",
+    "z_down": "Mount the IMU with its z axis pointing down.",
+}
+
+
+def triangular_rates(max_dps: float, step_dps: float) -> list[float]:
+    """The paper's triangular schedule: 0 -> +max -> -max -> 0 in steps, 4*max/step rates."""
+    n = int(round(max_dps / step_dps))
+    up = [step_dps * k for k in range(1, n + 1)]
+    down = [max_dps - step_dps * k for k in range(1, 2 * n + 1)]
+    back = [-max_dps + step_dps * k for k in range(1, n + 1)]
+    return [round(r, 9) + 0.0 for r in up + down + back]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Temperatures(_Strict):
+    list_c: list[float] | None = None
+    start_c: float | None = None
+    stop_c: float | None = None
+    step_c: float | None = Field(None, gt=0)
+    order: Literal["ascending", "descending", "serpentine"] = "serpentine"
+
+    @model_validator(mode="after")
+    def _one_form(self) -> Temperatures:
+        ranged = (self.start_c, self.stop_c, self.step_c)
+        if self.list_c is not None:
+            if any(v is not None for v in ranged):
+                raise ValueError("give either list_c or start_c/stop_c/step_c, not both")
+            if not self.list_c:
+                raise ValueError("list_c must name at least one temperature")
+            if len(set(self.list_c)) != len(self.list_c):
+                raise ValueError("list_c has a temperature twice")
+        else:
+            if any(v is None for v in ranged):
+                raise ValueError("give list_c, or all of start_c, stop_c and step_c")
+            if self.stop_c < self.start_c:  # type: ignore[operator]
+                raise ValueError("stop_c must be >= start_c")
+        return self
+
+    def values(self) -> list[float]:
+        if self.list_c is not None:
+            return sorted(float(v) for v in self.list_c)
+        n = int(math.floor((self.stop_c - self.start_c) / self.step_c + 1e-9))  # type: ignore[operator]
+        return [round(self.start_c + k * self.step_c, 6) for k in range(n + 1)]  # type: ignore[operator]
+
+
+class Soak(_Strict):
+    tolerance_c: float = Field(0.3, gt=0)
+    stable_window_s: float = Field(600.0, gt=0)
+    max_wait_s: float = Field(3 * 3600.0, gt=0)
+    on_timeout: Literal["continue", "pause", "abort"] = "pause"
+    sensor: Literal["imu", "chamber"] = "imu"
+    poll_s: float = Field(30.0, gt=0)
+
+    @model_validator(mode="after")
+    def _window_fits(self) -> Soak:
+        if self.stable_window_s > self.max_wait_s:
+            raise ValueError("stable_window_s must not exceed max_wait_s")
+        if self.poll_s > self.stable_window_s:
+            raise ValueError("poll_s must not exceed stable_window_s")
+        return self
+
+
+class Orientation(_Strict):
+    name: OrientationName
+    prompt: str | None = None
+
+
+class Triangular(_Strict):
+    max_dps: float = Field(gt=0)
+    step_dps: float = Field(gt=0)
+
+    @model_validator(mode="after")
+    def _whole_steps(self) -> Triangular:
+        n = self.max_dps / self.step_dps
+        if abs(n - round(n)) > 1e-9:
+            raise ValueError("max_dps must be a whole number of step_dps")
+        return self
+
+
+class Rates(_Strict):
+    list_dps: list[float] | None = None
+    triangular: Triangular | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self) -> Rates:
+        if (self.list_dps is None) == (self.triangular is None):
+            raise ValueError("give exactly one of list_dps or triangular")
+        if self.list_dps is not None and not self.list_dps:
+            raise ValueError("list_dps must name at least one rate")
+        return self
+
+    def values(self) -> list[float]:
+        if self.list_dps is not None:
+            return [float(v) for v in self.list_dps]
+        assert self.triangular is not None
+        return triangular_rates(self.triangular.max_dps, self.triangular.step_dps)
+
+
+class Safety(_Strict):
+    chamber_min_c: float = -40.0
+    chamber_max_c: float = 85.0
+    max_rate_dps: float = Field(300.0, gt=0)
+    imu_max_temp_c: float = 85.0
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Safety:
+        if self.chamber_min_c >= self.chamber_max_c:
+            raise ValueError("chamber_min_c must be below chamber_max_c")
+        return self
+
+
+class Faults(_Strict):
+    policy: Literal["pause", "abort"] = "pause"
+    retries: int = Field(3, ge=0, le=50)
+    backoff_s: float = Field(1.0, ge=0)
+    max_dropped_frames: int = Field(10, ge=0)  # per record step; more and the step is recorded again
+    max_rerecords: int = Field(3, ge=0)  # attempts at one step before the fault policy applies
+
+
+class Monitor(_Strict):
+    enabled: bool = True  # log 1 s means of the IMU (and the chamber) while ramping and soaking
+    average_s: float = Field(1.0, gt=0)
+
+
+class Fit(_Strict):
+    run: bool = True
+    polynomial_order: int = Field(3, ge=0, le=6)
+    rbf: bool = True
+
+
+class ProcedureModel(_Strict):
+    name: str
+    description: str = ""
+    temperatures: Temperatures
+    soak: Soak = Soak()
+    orientations: list[Orientation] = Field(min_length=1)
+    remount_c: float = 23.0  # chamber temperature for remounting (the operator opens the door)
+    remount_s: float = Field(300.0, ge=0)  # how long a remount takes (used by dry runs)
+    rates: Rates
+    settle_s: float = Field(5.0, ge=0)
+    record_s: float = Field(60.0, gt=0)
+    record_poll_s: float = Field(20.0, gt=0)  # chamber and table polled this often while recording
+    sample_rate_hz: float = Field(50.0, gt=0, le=10000)
+    safety: Safety = Safety()
+    faults: Faults = Faults()
+    monitor: Monitor = Monitor()
+    fit: Fit = Fit()
+
+    @field_validator("orientations", mode="before")
+    @classmethod
+    def _shorthand(cls, v: Any) -> Any:
+        # `[x_up, x_down]` is shorthand for `[{name: x_up}, {name: x_down}]` with default prompts.
+        if isinstance(v, list):
+            return [{"name": o} if isinstance(o, str) else o for o in v]
+        return v
+
+    @field_validator("orientations")
+    @classmethod
+    def _unique(cls, v: list[Orientation]) -> list[Orientation]:
+        names = [o.name for o in v]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"orientation {sorted(dup)[0]} is listed twice")
+        return v
+
+
+@dataclass(frozen=True)
+class Step:
+    """One record step of the expanded plan."""
+
+    index: int
+    orientation: str
+    temperature_c: float
+    rate_dps: float
+    orientation_index: int
+    temperature_index: int  # position in this orientation's temperature sequence
+    rate_index: int
+
+
+@dataclass(frozen=True)
+class Procedure:
+    model: ProcedureModel
+    text: str
+    source: str
+
+    @property
+    def name(self) -> str:
+        return self.model.name
+
+    @property
+    def sha256(self) -> str:
+        return hashlib.sha256(self.text.encode("utf-8")).hexdigest()
+
+    def orientations(self) -> list[tuple[str, str]]:
+        """(name, operator prompt) in procedure order."""
+        out = []
+        for o in self.model.orientations:
+            out.append((o.name, o.prompt or DEFAULT_PROMPTS[o.name]))
+        return out
+
+    def prompt_for(self, orientation: str) -> str:
+        return dict(self.orientations())[orientation]
+
+    def temperatures_for(self, orientation_index: int) -> list[float]:
+        temps = self.model.temperatures.values()
+        order = self.model.temperatures.order
+        if order == "descending" or (order == "serpentine" and orientation_index % 2 == 1):
+            return temps[::-1]
+        return temps
+
+    def steps(self) -> list[Step]:
+        out: list[Step] = []
+        rates = self.model.rates.values()
+        for oi, (name, _) in enumerate(self.orientations()):
+            for ti, temp in enumerate(self.temperatures_for(oi)):
+                for ri, rate in enumerate(rates):
+                    out.append(Step(len(out), name, temp, rate, oi, ti, ri))
+        return out
+
+    @property
+    def frames_per_record(self) -> int:
+        return int(round(self.model.record_s * self.model.sample_rate_hz))
+
+    def estimated_duration_s(self, ramp_c_per_min: float = 2.0) -> float:
+        """A rough lab-time estimate: records, settling, soaks and remounts."""
+        m = self.model
+        rates = m.rates.values()
+        per_temp = sum(m.settle_s + m.record_s + abs(r) / 100.0 for r in rates)
+        total = 0.0
+        for oi, _ in enumerate(self.orientations()):
+            prev = m.remount_c
+            for temp in self.temperatures_for(oi):
+                total += abs(temp - prev) / ramp_c_per_min * 60.0 + m.soak.stable_window_s * 2.5 + per_temp
+                prev = temp
+            total += m.remount_s
+        return total
+
+
+def _cross_checks(model: ProcedureModel, positions: dict[tuple[Any, ...], int], source: str) -> list[str]:
+    """Checks across sections (temperatures against safety limits, rates against the rate limit)."""
+    def at(*path: Any) -> str:
+        for n in range(len(path), -1, -1):
+            if path[:n] in positions:
+                return f"{source}:{positions[path[:n]]}"
+        return source
+
+    problems = []
+    s = model.safety
+    temps = model.temperatures.values()
+    bad = [t for t in temps if not s.chamber_min_c <= t <= s.chamber_max_c]
+    if bad:
+        problems.append(f"{at('temperatures')}: temperatures {bad[0]} C is outside the safety limits "
+                        f"safety.chamber_min_c..chamber_max_c ({s.chamber_min_c}..{s.chamber_max_c} C)")
+    if not s.chamber_min_c <= model.remount_c <= s.chamber_max_c:
+        problems.append(f"{at('remount_c')}: remount_c {model.remount_c} C is outside the safety limits")
+    rates = model.rates.values()
+    fast = [r for r in rates if abs(r) > s.max_rate_dps]
+    if fast:
+        problems.append(f"{at('rates')}: rates {fast[0]} deg/s exceeds safety.max_rate_dps ({s.max_rate_dps})")
+    if model.record_poll_s > model.record_s:
+        problems.append(f"{at('record_poll_s')}: record_poll_s must not exceed record_s")
+    frames = model.record_s * model.sample_rate_hz
+    if abs(frames - round(frames)) > 1e-6 or round(frames) < 1:
+        problems.append(f"{at('record_s')}: record_s x sample_rate_hz must be a whole number of frames")
+    return problems
+
+
+def parse_procedure(text: str, source: str) -> Procedure:
+    data, positions = load_yaml(text, source)
+    model = validate(ProcedureModel, data, positions, source)
+    problems = _cross_checks(model, positions, source)
+    if problems:
+        raise ConfigError(problems)
+    return Procedure(model=model, text=text, source=source)
+
+
+def load_procedure(path: str | Path) -> Procedure:
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError([f"{p}: procedure file not found"]) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError([f"{p}: cannot read: {exc}"]) from None
+    return parse_procedure(text, str(p))
+
+
+__all__ = ["ORIENTATIONS", "Procedure", "ProcedureModel", "Step", "load_procedure", "parse_procedure",
+           "triangular_rates"]

@@ -1,0 +1,524 @@
+"""The campaign store: SQLite through SQLAlchemy Core.
+
+Tables: campaigns (procedure text and hash, lab configuration, software version,
+status), steps (the planned record steps and their status), sample_blocks (one row
+per record step, the samples as typed little-endian blobs: counter offsets int32,
+accel/gyro/temp float32, plus the chamber and table readings taken while
+recording; also 'monitor' blocks of 1 s means while ramping and soaking), events
+(every state transition, fault and recovery, with its time), fits, and control
+(pause/abort requests from another process).
+
+A record step is written with its step status and its event in one transaction,
+so after any crash a step is either complete or absent; a partial unique index
+makes a second copy of a step impossible. WAL and synchronous=NORMAL on every
+connection. Readers return pandas frames.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from sqlalchemy import (
+    Column, Float, ForeignKey, Index, Integer, LargeBinary, MetaData, String, Table, Text, create_engine,
+    event, func, insert, select, text, update,
+)
+from sqlalchemy.engine import Connection, Engine
+from sqlalchemy.exc import DatabaseError, OperationalError
+
+from labrunner import __version__
+from labrunner.campaign_csv import COLUMNS
+from labrunner.errors import UserError
+
+SCHEMA_VERSION = 1
+metadata = MetaData()
+
+campaigns = Table(
+    "campaigns", metadata,
+    Column("id", Integer, primary_key=True),
+    Column("name", String, nullable=False),
+    Column("procedure_path", String),
+    Column("procedure_text", Text, nullable=False),
+    Column("procedure_sha256", String, nullable=False),
+    Column("lab_config", Text, nullable=False),  # JSON
+    Column("mode", String, nullable=False),  # "sim" or "lab"
+    Column("sim_config", Text),  # JSON (seed, faults) for dry runs
+    Column("software_version", String, nullable=False),
+    Column("status", String, nullable=False),  # running, paused, aborted, failed, done
+    Column("created_wall", Float, nullable=False),
+    Column("updated_wall", Float, nullable=False),
+    Column("clock_t0", Float, nullable=False),  # clock time of campaign time zero
+    Column("clock_last", Float, nullable=False),  # last clock time seen (a resumed dry run continues from here)
+    Column("pid", Integer),
+    Column("host", String),
+    Column("n_steps", Integer, nullable=False),
+)
+
+steps = Table(
+    "steps", metadata,
+    Column("campaign_id", Integer, ForeignKey("campaigns.id"), primary_key=True),
+    Column("idx", Integer, primary_key=True),
+    Column("orientation", String, nullable=False),
+    Column("temperature_c", Float, nullable=False),
+    Column("rate_dps", Float, nullable=False),
+    Column("status", String, nullable=False),  # planned, done
+    Column("run", Integer),
+    Column("attempts", Integer, nullable=False, default=0),
+    Column("t_start", Float),
+    Column("t_end", Float),
+    Column("n_samples", Integer),
+    Column("dropped", Integer),
+    Column("corrupt", Integer),
+    Column("imu_temp_c", Float),
+    Column("chamber_c", Float),
+)
+
+sample_blocks = Table(
+    "sample_blocks", metadata,
+    Column("id", Integer, primary_key=True),
+    Column("campaign_id", Integer, ForeignKey("campaigns.id"), nullable=False),
+    Column("kind", String, nullable=False),  # record, monitor
+    Column("step_idx", Integer),
+    Column("run", Integer, nullable=False),
+    Column("orientation", String, nullable=False),
+    Column("t0_s", Float, nullable=False),  # campaign time of the first sample
+    Column("rate_hz", Float, nullable=False),
+    Column("n", Integer, nullable=False),
+    Column("counter", LargeBinary, nullable=False),  # int32 offsets from the first sample's counter
+    # Samples as the IMU sent them: int16 counts with their LSB sizes (lossless), or float32 when
+    # they are not whole counts (monitor means, an IMU that sends floats).
+    Column("encoding", String, nullable=False),  # "i16" or "f32"
+    Column("accel_lsb", Float),
+    Column("gyro_lsb", Float),
+    Column("temp_lsb", Float),
+    Column("accel_g", LargeBinary, nullable=False),  # (n, 3)
+    Column("gyro_dps", LargeBinary, nullable=False),  # (n, 3)
+    Column("temp_c", LargeBinary, nullable=False),  # (n,)
+    Column("chamber", LargeBinary, nullable=False),  # float64 pairs (t_s, deg C) read while recording
+    Column("table", LargeBinary, nullable=False),  # float64 pairs (t_s, deg/s)
+    Index("one_record_per_step", "campaign_id", "step_idx", unique=True, sqlite_where=text("kind = 'record'")),
+    Index("blocks_by_time", "campaign_id", "t0_s"),
+)
+
+events = Table(
+    "events", metadata,
+    Column("id", Integer, primary_key=True),
+    Column("campaign_id", Integer, ForeignKey("campaigns.id"), nullable=False),
+    Column("t_s", Float, nullable=False),  # campaign time
+    Column("wall", Float, nullable=False),
+    Column("kind", String, nullable=False),  # transition, fault, recovery, warning, operator, info
+    Column("state", String),
+    Column("step_idx", Integer),
+    Column("message", Text, nullable=False),
+    Column("detail", Text),  # JSON
+    Index("events_by_campaign", "campaign_id", "id"),
+)
+
+fits = Table(
+    "fits", metadata,
+    Column("id", Integer, primary_key=True),
+    Column("campaign_id", Integer, ForeignKey("campaigns.id"), nullable=False),
+    Column("created_wall", Float, nullable=False),
+    Column("software_version", String, nullable=False),
+    Column("provenance", Text, nullable=False),  # JSON: data range, rows, source
+    Column("result", Text, nullable=False),  # JSON
+)
+
+control = Table(
+    "control", metadata,
+    Column("campaign_id", Integer, ForeignKey("campaigns.id"), primary_key=True),
+    Column("request", String),  # pause, abort
+    Column("requested_wall", Float),
+)
+
+meta = Table(
+    "labrunner_meta", metadata,
+    Column("key", String, primary_key=True),
+    Column("value", String, nullable=False),
+)
+
+
+@dataclass
+class SampleBlock:
+    """Samples of one record step (or one monitor stretch) with what was read beside them."""
+
+    kind: str  # "record" or "monitor"
+    step_idx: int | None
+    run: int
+    orientation: str
+    t0_s: float
+    rate_hz: float
+    counter: np.ndarray  # (n,) int
+    accel_g: np.ndarray  # (n, 3)
+    gyro_dps: np.ndarray  # (n, 3)
+    temp_c: np.ndarray  # (n,)
+    chamber: np.ndarray  # (k, 2): t_s, deg C
+    table: np.ndarray  # (m, 2): t_s, deg/s
+    lsb: tuple[float, float, float] | None = None  # accel, gyro, temp LSB: values are whole counts
+
+    def __len__(self) -> int:
+        return int(self.counter.size)
+
+    def times(self) -> np.ndarray:
+        return self.t0_s + (self.counter - self.counter[0]) / self.rate_hz if len(self) else np.zeros(0)
+
+
+def _f32(a: np.ndarray) -> bytes:
+    return np.ascontiguousarray(a, dtype="<f4").tobytes()
+
+
+def _encode(values: np.ndarray, lsb: float | None) -> bytes:
+    if lsb is None:
+        return _f32(values)
+    return np.ascontiguousarray(np.rint(np.asarray(values) / lsb), dtype="<i2").tobytes()
+
+
+def _decode(raw: bytes, encoding: str, lsb: float | None, shape: tuple[int, ...]) -> np.ndarray:
+    if encoding == "i16":
+        return np.frombuffer(raw, dtype="<i2").reshape(shape) * lsb
+    return np.frombuffer(raw, dtype="<f4").reshape(shape).astype(float)
+
+
+def _f64(a: np.ndarray) -> bytes:
+    return np.ascontiguousarray(a, dtype="<f8").tobytes()
+
+
+@dataclass
+class CampaignInfo:
+    id: int
+    name: str
+    status: str
+    mode: str
+    procedure_text: str
+    procedure_path: str | None
+    procedure_sha256: str
+    lab_config: dict[str, Any]
+    sim_config: dict[str, Any] | None
+    software_version: str
+    created_wall: float
+    updated_wall: float
+    clock_t0: float
+    clock_last: float
+    pid: int | None
+    host: str | None
+    n_steps: int
+
+
+def _on_connect(dbapi_conn: Any, _record: Any) -> None:
+    cur = dbapi_conn.cursor()
+    cur.execute("PRAGMA journal_mode=WAL")
+    cur.execute("PRAGMA synchronous=NORMAL")
+    cur.execute("PRAGMA foreign_keys=ON")
+    cur.execute("PRAGMA busy_timeout=10000")
+    cur.close()
+
+
+class Store:
+    def __init__(self, engine: Engine, path: Path) -> None:
+        self.engine = engine
+        self.path = path
+
+    # --- opening ---------------------------------------------------------------------------
+
+    @staticmethod
+    def _engine(path: Path) -> Engine:
+        engine = create_engine(f"sqlite:///{path}", future=True)
+        event.listen(engine, "connect", _on_connect)
+        return engine
+
+    @classmethod
+    def create(cls, path: str | Path) -> Store:
+        """Open for writing, creating the schema if the file is new (a file may hold many campaigns)."""
+        p = Path(path)
+        if p.exists() and p.stat().st_size > 0:
+            store = cls.open_existing(p)
+            return store
+        p.parent.mkdir(parents=True, exist_ok=True)
+        engine = cls._engine(p)
+        metadata.create_all(engine)
+        with engine.begin() as conn:
+            conn.execute(insert(meta), [{"key": "schema_version", "value": str(SCHEMA_VERSION)},
+                                        {"key": "created_by", "value": f"labrunner {__version__}"}])
+        return cls(engine, p)
+
+    @classmethod
+    def open_existing(cls, path: str | Path) -> Store:
+        p = Path(path)
+        if not p.exists():
+            raise UserError(f"{p}: database not found")
+        engine = cls._engine(p)
+        try:
+            with engine.connect() as conn:
+                version = conn.execute(select(meta.c.value).where(meta.c.key == "schema_version")).scalar()
+        except (OperationalError, DatabaseError):
+            engine.dispose()
+            raise UserError(f"{p}: not a labrunner database") from None
+        if version is None or int(version) != SCHEMA_VERSION:
+            engine.dispose()
+            raise UserError(f"{p}: database schema version {version}, this labrunner reads {SCHEMA_VERSION}")
+        return cls(engine, p)
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    @contextmanager
+    def transaction(self) -> Iterator[Connection]:
+        with self.engine.begin() as conn:
+            yield conn
+
+    # --- campaigns ---------------------------------------------------------------------------
+
+    def new_campaign(self, *, name: str, procedure_text: str, procedure_path: str | None, procedure_sha256: str,
+                     lab_config: dict[str, Any], mode: str, sim_config: dict[str, Any] | None, clock_t0: float,
+                     plan: Sequence[Any]) -> int:
+        now = time.time()
+        with self.transaction() as conn:
+            cid = conn.execute(insert(campaigns).values(
+                name=name, procedure_path=procedure_path, procedure_text=procedure_text,
+                procedure_sha256=procedure_sha256, lab_config=json.dumps(lab_config), mode=mode,
+                sim_config=json.dumps(sim_config) if sim_config is not None else None,
+                software_version=__version__, status="running", created_wall=now, updated_wall=now,
+                clock_t0=clock_t0, clock_last=clock_t0, pid=os.getpid(), host=os.uname().nodename,
+                n_steps=len(plan))).inserted_primary_key[0]
+            conn.execute(insert(steps), [
+                {"campaign_id": cid, "idx": s.index, "orientation": s.orientation, "temperature_c": s.temperature_c,
+                 "rate_dps": s.rate_dps, "status": "planned", "attempts": 0} for s in plan])
+            conn.execute(insert(control).values(campaign_id=cid, request=None))
+        return int(cid)
+
+    def campaign_ids(self) -> list[int]:
+        with self.engine.connect() as conn:
+            return [int(r) for r in conn.execute(select(campaigns.c.id).order_by(campaigns.c.id)).scalars()]
+
+    def resolve(self, campaign_id: int | None) -> int:
+        """The campaign asked for, or the file's only/latest one."""
+        ids = self.campaign_ids()
+        if not ids:
+            raise UserError(f"{self.path}: holds no campaign")
+        if campaign_id is None:
+            return ids[-1]
+        if campaign_id not in ids:
+            raise UserError(f"{self.path}: no campaign {campaign_id} (campaigns: {', '.join(map(str, ids))})")
+        return campaign_id
+
+    def campaign(self, campaign_id: int) -> CampaignInfo:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(campaigns).where(campaigns.c.id == campaign_id)).mappings().one_or_none()
+        if row is None:
+            raise UserError(f"{self.path}: no campaign {campaign_id}")
+        d = dict(row)
+        d["lab_config"] = json.loads(d["lab_config"])
+        d["sim_config"] = json.loads(d["sim_config"]) if d["sim_config"] else None
+        return CampaignInfo(**d)
+
+    def set_status(self, campaign_id: int, status: str, *, clock_last: float | None = None,
+                   pid: int | None | str = "keep") -> None:
+        values: dict[str, Any] = {"status": status, "updated_wall": time.time()}
+        if clock_last is not None:
+            values["clock_last"] = clock_last
+        if pid != "keep":
+            values["pid"] = pid
+        with self.transaction() as conn:
+            conn.execute(update(campaigns).where(campaigns.c.id == campaign_id).values(**values))
+
+    def heartbeat(self, campaign_id: int, clock_now: float) -> None:
+        with self.transaction() as conn:
+            conn.execute(update(campaigns).where(campaigns.c.id == campaign_id).values(
+                updated_wall=time.time(), clock_last=clock_now))
+
+    # --- steps and samples ---------------------------------------------------------------------
+
+    def next_step(self, campaign_id: int) -> int | None:
+        """Index of the first step not yet recorded (None: all done)."""
+        with self.engine.connect() as conn:
+            return conn.execute(select(func.min(steps.c.idx)).where(
+                steps.c.campaign_id == campaign_id, steps.c.status != "done")).scalar()
+
+    def last_time(self, campaign_id: int) -> float:
+        """Campaign time of the latest event (every transition and record writes one)."""
+        with self.engine.connect() as conn:
+            return float(conn.execute(select(func.max(events.c.t_s)).where(
+                events.c.campaign_id == campaign_id)).scalar() or 0.0)
+
+    def max_run(self, campaign_id: int) -> int:
+        with self.engine.connect() as conn:
+            return int(conn.execute(select(func.max(sample_blocks.c.run)).where(
+                sample_blocks.c.campaign_id == campaign_id)).scalar() or 0)
+
+    def note_attempt(self, campaign_id: int, step_idx: int) -> None:
+        with self.transaction() as conn:
+            conn.execute(update(steps).where(steps.c.campaign_id == campaign_id, steps.c.idx == step_idx).values(
+                attempts=steps.c.attempts + 1))
+
+    @staticmethod
+    def _block_row(campaign_id: int, block: SampleBlock) -> dict[str, Any]:
+        counter = np.asarray(block.counter, dtype=np.int64)
+        offsets = (counter - counter[0]) if counter.size else counter
+        la, lg, lt = block.lsb if block.lsb is not None else (None, None, None)
+        return {
+            "campaign_id": campaign_id, "kind": block.kind, "step_idx": block.step_idx, "run": block.run,
+            "orientation": block.orientation, "t0_s": block.t0_s, "rate_hz": block.rate_hz, "n": int(counter.size),
+            "counter": np.ascontiguousarray(offsets, dtype="<i4").tobytes(),
+            "encoding": "i16" if block.lsb is not None else "f32", "accel_lsb": la, "gyro_lsb": lg, "temp_lsb": lt,
+            "accel_g": _encode(block.accel_g, la), "gyro_dps": _encode(block.gyro_dps, lg),
+            "temp_c": _encode(block.temp_c, lt), "chamber": _f64(block.chamber), "table": _f64(block.table),
+        }
+
+    def commit_record(self, campaign_id: int, block: SampleBlock, *, dropped: int, corrupt: int, t_end: float,
+                      event_message: str, detail: dict[str, Any] | None = None, _crash_hook: Any = None) -> None:
+        """Store a record step's samples, mark the step done and log it: all or nothing."""
+        assert block.kind == "record" and block.step_idx is not None
+        chamber_mean = float(np.mean(block.chamber[:, 1])) if block.chamber.size else None
+        with self.transaction() as conn:
+            conn.execute(insert(sample_blocks), [self._block_row(campaign_id, block)])
+            conn.execute(update(steps).where(steps.c.campaign_id == campaign_id, steps.c.idx == block.step_idx).values(
+                status="done", run=block.run, t_start=block.t0_s, t_end=t_end, n_samples=len(block),
+                dropped=dropped, corrupt=corrupt, imu_temp_c=float(np.mean(block.temp_c)) if len(block) else None,
+                chamber_c=chamber_mean))
+            self._event(conn, campaign_id, t_end, "record", event_message, step_idx=block.step_idx, detail=detail)
+            if _crash_hook is not None:
+                _crash_hook()  # tests: die inside the transaction, before it commits
+
+    def save_monitor(self, campaign_id: int, block: SampleBlock) -> None:
+        with self.transaction() as conn:
+            conn.execute(insert(sample_blocks), [self._block_row(campaign_id, block)])
+
+    # --- events and control ----------------------------------------------------------------------
+
+    @staticmethod
+    def _event(conn: Connection, campaign_id: int, t_s: float, kind: str, message: str, *, state: str | None = None,
+               step_idx: int | None = None, detail: dict[str, Any] | None = None) -> None:
+        conn.execute(insert(events).values(
+            campaign_id=campaign_id, t_s=t_s, wall=time.time(), kind=kind, state=state, step_idx=step_idx,
+            message=message, detail=json.dumps(detail) if detail else None))
+
+    def event(self, campaign_id: int, t_s: float, kind: str, message: str, *, state: str | None = None,
+              step_idx: int | None = None, detail: dict[str, Any] | None = None) -> None:
+        with self.transaction() as conn:
+            self._event(conn, campaign_id, t_s, kind, message, state=state, step_idx=step_idx, detail=detail)
+
+    def request(self, campaign_id: int, what: str | None) -> None:
+        with self.transaction() as conn:
+            conn.execute(update(control).where(control.c.campaign_id == campaign_id).values(
+                request=what, requested_wall=time.time() if what else None))
+
+    def pending_request(self, campaign_id: int) -> str | None:
+        with self.engine.connect() as conn:
+            return conn.execute(select(control.c.request).where(control.c.campaign_id == campaign_id)).scalar()
+
+    # --- fits ------------------------------------------------------------------------------------
+
+    def save_fit(self, campaign_id: int, result: dict[str, Any], provenance: dict[str, Any]) -> int:
+        with self.transaction() as conn:
+            return int(conn.execute(insert(fits).values(
+                campaign_id=campaign_id, created_wall=time.time(), software_version=__version__,
+                provenance=json.dumps(provenance), result=json.dumps(result))).inserted_primary_key[0])
+
+    def fits_frame(self, campaign_id: int) -> pd.DataFrame:
+        with self.engine.connect() as conn:
+            return pd.read_sql(select(fits.c.id, fits.c.created_wall, fits.c.software_version, fits.c.provenance)
+                               .where(fits.c.campaign_id == campaign_id).order_by(fits.c.id), conn)
+
+    # --- readers ------------------------------------------------------------------------------------
+
+    def steps_frame(self, campaign_id: int) -> pd.DataFrame:
+        with self.engine.connect() as conn:
+            return pd.read_sql(select(steps).where(steps.c.campaign_id == campaign_id).order_by(steps.c.idx), conn)
+
+    def events_frame(self, campaign_id: int, last: int | None = None) -> pd.DataFrame:
+        q = select(events).where(events.c.campaign_id == campaign_id)
+        if last:
+            q = q.order_by(events.c.id.desc()).limit(last)
+        with self.engine.connect() as conn:
+            frame = pd.read_sql(q, conn)
+        return frame.sort_values("id").reset_index(drop=True)
+
+    def blocks(self, campaign_id: int, kinds: Sequence[str] = ("record",)) -> Iterator[SampleBlock]:
+        q = (select(sample_blocks).where(sample_blocks.c.campaign_id == campaign_id,
+                                         sample_blocks.c.kind.in_(list(kinds)))
+             .order_by(sample_blocks.c.t0_s, sample_blocks.c.id))
+        with self.engine.connect() as conn:
+            for row in conn.execute(q).mappings():
+                n, enc = row["n"], row["encoding"]
+                lsb = (row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]) if enc == "i16" else None
+                yield SampleBlock(
+                    kind=row["kind"], step_idx=row["step_idx"], run=row["run"], orientation=row["orientation"],
+                    t0_s=row["t0_s"], rate_hz=row["rate_hz"],
+                    counter=np.frombuffer(row["counter"], dtype="<i4").astype(np.int64),
+                    accel_g=_decode(row["accel_g"], enc, row["accel_lsb"], (n, 3)),
+                    gyro_dps=_decode(row["gyro_dps"], enc, row["gyro_lsb"], (n, 3)),
+                    temp_c=_decode(row["temp_c"], enc, row["temp_lsb"], (n,)),
+                    chamber=np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2),
+                    table=np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2),
+                    lsb=lsb,
+                )
+
+    def samples_frame(self, campaign_id: int, include_monitor: bool = False) -> pd.DataFrame:
+        """All samples in the campaign CSV columns (records; with monitor rows if asked), time-ordered."""
+        kinds = ("record", "monitor") if include_monitor else ("record",)
+        parts: dict[str, list[np.ndarray]] = {c: [] for c in COLUMNS}
+        for b in self.blocks(campaign_id, kinds):
+            n = len(b)
+            if n == 0:
+                continue
+            t = b.times()
+            parts["t_s"].append(t)
+            parts["run"].append(np.full(n, b.run, dtype=np.int64))
+            parts["orientation"].append(np.full(n, b.orientation, dtype=object))
+            parts["chamber_c"].append(_interp_readings(t, b.chamber))
+            parts["imu_temp_c"].append(b.temp_c.astype(float))
+            parts["table_rate_dps"].append(_interp_readings(t, b.table, default=0.0))
+            for j, c in enumerate(("ax_g", "ay_g", "az_g")):
+                parts[c].append(b.accel_g[:, j].astype(float))
+            for j, c in enumerate(("gx_dps", "gy_dps", "gz_dps")):
+                parts[c].append(b.gyro_dps[:, j].astype(float))
+        if not parts["t_s"]:
+            return pd.DataFrame({c: pd.Series(dtype=float) for c in COLUMNS})
+        frame = pd.DataFrame({c: np.concatenate(v) for c, v in parts.items()})
+        if include_monitor:
+            frame = frame.sort_values("t_s", kind="stable").reset_index(drop=True)
+        return frame
+
+    def campaign_data(self, campaign_id: int | None = None, include_monitor: bool = False) -> Any:
+        """Samples as validated campaign data with provenance (what `labrunner fit`/`diagnose` read)."""
+        from labrunner.campaign_csv import read_campaign
+        from labrunner.data_source import CampaignData
+
+        cid = self.resolve(campaign_id)
+        info = self.campaign(cid)
+        frame = self.samples_frame(cid, include_monitor=include_monitor)
+        if frame.empty:
+            raise UserError(f"{self.path}: campaign {cid} has no recorded samples yet")
+        frame = read_campaign(frame, name=f"{self.path} campaign {cid}")
+        return CampaignData(frame=frame, provenance={
+            "source": str(self.path.resolve()), "kind": "store", "campaign_id": cid, "campaign": info.name,
+            "procedure_sha256": info.procedure_sha256, "status": info.status, "rows": len(frame),
+            "t_range_s": [float(frame.t_s.min()), float(frame.t_s.max())],
+            "recorded_with": info.software_version,
+        })
+
+
+def _interp_readings(t: np.ndarray, readings: np.ndarray, default: float = float("nan")) -> np.ndarray:
+    """Instrument readings taken during a block, interpolated to the sample times."""
+    if readings.size == 0:
+        return np.full(t.size, default)
+    if readings.shape[0] == 1:
+        return np.full(t.size, readings[0, 1])
+    return np.interp(t, readings[:, 0], readings[:, 1])
+
+
+__all__ = ["CampaignInfo", "SampleBlock", "Store"]

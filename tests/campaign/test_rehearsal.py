@@ -1,0 +1,95 @@
+"""Rehearsal against `labrunner sim serve` in another process, through a lab configuration, in real time
+(sped up): the operator answers at the terminal, and a second Ctrl-C during a record aborts to a safe state."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from labrunner.store import Store
+
+from .conftest import popen
+
+PROC = """\
+name: rehearsal
+temperatures: {list_c: [23]}
+soak: {tolerance_c: 1.0, stable_window_s: 60, max_wait_s: 3600, sensor: chamber, poll_s: 10}
+orientations: [{name: z_up, prompt: "Mount the IMU z up"}]
+rates: {list_dps: [0, 20, -20, 40]}
+settle_s: 2
+record_s: 30
+record_poll_s: 10
+fit: {run: false}
+"""
+
+
+@pytest.fixture
+def served_lab(tmp_path):
+    lab_yaml = tmp_path / "lab.yaml"
+    proc = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "sim", "serve", "--speed", "50",
+                             "--lab-config", str(lab_yaml)], stdout=subprocess.PIPE, text=True)
+    for line in proc.stdout:
+        if line.startswith("  ready "):
+            json.loads(line.split("ready ", 1)[1])
+            break
+    yield lab_yaml
+    proc.terminate()
+    proc.wait(10)
+
+
+def _steps_done(db):
+    try:
+        with Store.open_existing(db) as store:
+            return int((store.steps_frame(store.resolve(None)).status == "done").sum())
+    except Exception:
+        return 0
+
+
+def test_rehearsal_runs_to_the_end(tmp_path, served_lab):
+    (tmp_path / "p.yaml").write_text(PROC)
+    db = tmp_path / "r.db"
+    p = popen("run", tmp_path / "p.yaml", "--lab", served_lab, "--db", db, "--quiet")
+    p.stdin = None
+    out, err = p.communicate(timeout=120)
+    # No terminal to acknowledge the mounting prompt: a clear message, the lab left safe, resumable.
+    assert p.returncode == 4, err
+    assert "no terminal to acknowledge" in err or "stdin" in err
+
+    db2 = tmp_path / "r2.db"
+    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(tmp_path / "p.yaml"), "--lab",
+                          str(served_lab), "--db", str(db2), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    out, err = p.communicate(input="\n", timeout=120)
+    assert p.returncode == 0, err
+    assert "OPERATOR: Mount the IMU z up" in err
+    with Store.open_existing(db2) as store:
+        steps = store.steps_frame(store.resolve(None))
+    assert (steps.status == "done").all() and (steps.n_samples == 1500).all()
+
+
+def test_second_ctrl_c_during_a_record_aborts_to_safe_state(tmp_path, served_lab):
+    (tmp_path / "p.yaml").write_text(PROC)
+    db = tmp_path / "r.db"
+    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(tmp_path / "p.yaml"), "--lab",
+                          str(served_lab), "--db", str(db), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    p.stdin.write("\n")
+    p.stdin.flush()
+    deadline = time.time() + 60
+    while _steps_done(db) < 1 and time.time() < deadline:
+        time.sleep(0.1)
+    time.sleep(0.2)  # into the next record (0.6 s of wall time at 50x)
+    p.send_signal(signal.SIGINT)
+    time.sleep(0.15)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 4, err
+    assert "pausing at the next safe point" in err and "aborting" in err
+    with Store.open_existing(db) as store:
+        cid = store.resolve(None)
+        ev = store.events_frame(cid)
+        assert store.campaign(cid).status == "aborted"
+    assert ev.message.str.contains("lab in safe state: table stopped").any()
