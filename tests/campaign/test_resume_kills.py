@@ -25,8 +25,9 @@ def _summary(db):
 
 
 def test_killed_anywhere_and_resumed_equals_uninterrupted(tmp_path, tiny):
-    # Long enough (72 steps) that ten kills land before it can finish.
-    tiny.write_text(tiny.read_text().replace("list_dps: [-50, 0, 50]", "list_dps: [-100, -50, 0, 25, 50, 100]"))
+    # Long enough (120 steps) that a dozen kills land before it can finish.
+    rates = "[-100, -75, -50, -25, 0, 10, 25, 50, 75, 100]"
+    tiny.write_text(tiny.read_text().replace("list_dps: [-50, 0, 50]", f"list_dps: {rates}"))
     ref = tmp_path / "ref.db"
     cli("run", tiny, "--sim", "--db", ref, "--quiet", check=0)
     ref_steps, ref_rows, _, _ = _summary(ref)
@@ -38,36 +39,29 @@ def test_killed_anywhere_and_resumed_equals_uninterrupted(tmp_path, tiny):
     proc = cli("run", tiny, "--sim", "--db", db, "--quiet", env={"LABRUNNER_CRASH_AT": "commit:3"})
     assert proc.returncode == -signal.SIGKILL
     kills.append("commit:3")
-    # Then resume, killing again at chosen points and at random moments, until it finishes.
-    plan = ["record:2", "random", "commit:1", "random", "record:5", "random", "commit:4", "random", "record:1",
-            "random", "commit:2", "random"]
-    finished = False
-    for attempt in range(40):
-        what = plan[attempt] if attempt < len(plan) else None
-        if what is None:
-            proc = cli("resume", db, "--quiet")
-            assert proc.returncode == 0, proc.stderr[-2000:]
-            finished = True
-            break
+    # Then resume, killing again at chosen points (mid-record: samples read, not yet stored;
+    # mid-commit) and at random moments (kill -9), until a dozen kills have landed.
+    cycle = ["record:2", "random", "commit:1", "random", "record:3", "random", "commit:2", "random"]
+    i = 0
+    while len(kills) < 12:
+        what = cycle[i % len(cycle)]
+        i += 1
+        assert i < 60, "the campaign finished or stalled before a dozen kills"
         if what == "random":
             p = popen("resume", db, "--quiet")
-            time.sleep(rng.uniform(0.3, 1.2))
+            time.sleep(rng.uniform(0.3, 1.0))
             if p.poll() is None:
                 p.send_signal(signal.SIGKILL)
                 kills.append("random")
             p.communicate(timeout=60)
-            if p.returncode == 0:
-                finished = True
-                break
+            assert p.returncode in (0, -signal.SIGKILL)
+            assert p.returncode != 0, "finished before a dozen kills: make the campaign longer"
         else:
             proc = cli("resume", db, "--quiet", env={"LABRUNNER_CRASH_AT": what})
-            if proc.returncode == 0:
-                finished = True
-                break
-            assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+            assert proc.returncode == -signal.SIGKILL, "finished early or failed: " + proc.stderr[-2000:]
             kills.append(what)
-    assert finished
-    assert len(kills) >= 10, kills
+    proc = cli("resume", db, "--quiet")
+    assert proc.returncode == 0, proc.stderr[-2000:]
     assert any(k.startswith("commit") for k in kills) and any(k.startswith("record") for k in kills)
 
     steps, rows, dup_blocks, status = _summary(db)
