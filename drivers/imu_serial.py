@@ -121,20 +121,21 @@ class SerialImu:
                 self._lose_link(exc)
                 continue
             if ready:
-                try:
-                    with self._cond:
-                        self._drain_locked()
-                except (OSError, serial.SerialException) as exc:
-                    self._lose_link(exc)
+                with self._cond:
+                    self._drain_locked()
 
     def _drain_locked(self) -> None:
-        """Read and parse whatever the port holds now (the port is non-blocking)."""
+        """Read and parse whatever the port holds now (the port is non-blocking); a broken link is dropped."""
         ser = self._ser
         if ser is None:
             return
         while True:
             # pyserial's socket:// in_waiting is only 0 or 1, so read large instead of asking.
-            data = ser.read(READ_SIZE)
+            try:
+                data = ser.read(READ_SIZE)
+            except (OSError, serial.SerialException) as exc:
+                self._lose_link(exc)  # the reader thread reopens it
+                return
             if not data:
                 return
             self._ingest(data)
@@ -197,10 +198,7 @@ class SerialImu:
         """Mark the start of a record: the counter of the last frame received (-1: none yet, the
         record then starts at the first frame that arrives)."""
         with self._cond:
-            try:
-                self._drain_locked()
-            except (OSError, serial.SerialException):
-                pass  # the reader thread handles the link
+            self._drain_locked()
             start = self._last if self._last is not None else -1
             self._open_records[start] = self._decoder.corrupt  # corrupt count so far, to report the record's own
             return start
@@ -208,10 +206,7 @@ class SerialImu:
     def end_record(self, start: int, n_frames: int, timeout_s: float) -> ImuRecord:
         """The n frames after `start`, waiting up to timeout_s (real seconds) for late ones."""
         with self._cond:
-            try:
-                self._drain_locked()
-            except (OSError, serial.SerialException):
-                pass
+            self._drain_locked()
             corrupt_at_start = self._open_records.pop(start, self._decoder.corrupt)
             if start < 0:
                 # Nothing had arrived at begin_record: the window starts at the first frame that did.

@@ -94,7 +94,8 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
     runs = pd.to_numeric(raw["run"].astype(str).str.strip(), errors="coerce") if (from_csv or raw["run"].dtype == object) \
         else pd.to_numeric(raw["run"], errors="coerce")
     r = runs.to_numpy(dtype=float)
-    bad = ~np.isfinite(r) | (np.round(r) != r)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(r) | (np.round(r) != r) | (np.abs(r) > 2**31)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise CampaignDataError(label, f"{raw['run'].iloc[i]!r} is not an integer run number", _line(i, from_csv), "run")

@@ -14,6 +14,7 @@ from labrunner.errors import UserError
 COMMAND_MODULES = (
     "labrunner.commands.campaign",  # run, resume, status, abort, export
     "labrunner.commands.sim",  # sim serve
+    "labrunner.commands.check",  # check
     "labrunner.calibration.command",  # fit
     "labrunner.discrepancy.command",  # diagnose
 )

@@ -151,7 +151,7 @@ class Faults(_Strict):
     policy: Literal["pause", "abort"] = "pause"
     retries: int = Field(3, ge=0, le=50)
     backoff_s: float = Field(1.0, ge=0)
-    max_dropped_frames: int = Field(10, ge=0)  # per record step; more and the step is recorded again
+    max_dropped_frames: int = Field(0, ge=0)  # per record step; more and the step is recorded again
     max_rerecords: int = Field(3, ge=0)  # attempts at one step before the fault policy applies
 
 

@@ -40,6 +40,7 @@ TERMINAL = {"done", "paused", "aborted", "failed"}
 TRANSITIONS = [
     {"trigger": "start", "source": "idle", "dest": "preflight"},
     {"trigger": "preflight_ok", "source": "preflight", "dest": "mounting"},
+    {"trigger": "resume_mounted", "source": "preflight", "dest": "ramping"},
     {"trigger": "mounted", "source": "mounting", "dest": "ramping"},
     {"trigger": "at_setpoint", "source": "ramping", "dest": "soaking"},
     {"trigger": "soaked", "source": "soaking", "dest": "rate_settling"},
@@ -51,12 +52,15 @@ TRANSITIONS = [
     {"trigger": "all_recorded", "source": ["recording", "preflight"], "dest": "fitting"},
     {"trigger": "fitted", "source": "fitting", "dest": "done"},
     {"trigger": "pause", "source": ACTIVE, "dest": "paused"},
+    {"trigger": "resume", "source": "paused", "dest": "preflight"},
     {"trigger": "abort", "source": ACTIVE + ["paused", "idle"], "dest": "safe_stop"},
     {"trigger": "stopped_safely", "source": "safe_stop", "dest": "aborted"},
     {"trigger": "fail", "source": ACTIVE + ["safe_stop", "idle"], "dest": "failed"},
 ]
 
 Progress = Callable[["CampaignRunner"], None]
+SAFE_STOP_PERSIST_S = 600.0  # keep trying to reach the safe state this long (lab time) before giving up
+SAFE_STOP_RETRY_S = 15.0
 
 
 class _Stop(Exception):
@@ -87,7 +91,8 @@ class CampaignRunner:
 
     def __init__(self, procedure: Procedure, lab: Lab, store: Store, campaign_id: int, *,
                  progress: Progress | None = None, fit_out_dir: Any = None,
-                 crash_hook: Callable[[str], None] | None = None) -> None:
+                 crash_hook: Callable[[str], None] | None = None, auto_resume_s: float | None = None,
+                 max_auto_resumes: int = 200) -> None:
         self.procedure = procedure
         self.p = procedure.model
         self.lab = lab
@@ -109,6 +114,19 @@ class CampaignRunner:
         self.fit_ok = False
         self._last_heartbeat = 0.0
         self._last_request_check = 0.0
+        # Dry runs with injected faults: after a pause caused by a fault, resume after this much
+        # clock time, as the operator would, through real transitions (paused -> preflight).
+        self.auto_resume_s = auto_resume_s
+        self.max_auto_resumes = max_auto_resumes
+        self.auto_resumes = 0
+        self._paused_by_fault = False
+        self._retrying: dict[str, str] = {}  # instrument -> last retried error, until it answers again
+        self.fault_injector: Any = None
+        for inst in (lab.chamber, lab.table):
+            if hasattr(inst, "on_retry"):
+                inst.on_retry = self._on_retry
+        if hasattr(lab.imu, "on_event"):
+            lab.imu.on_event = self._on_imu_event
         self.machine = Machine(model=self, states=STATES, transitions=TRANSITIONS, initial="idle",
                                auto_transitions=False, after_state_change="_log_transition", send_event=True)
 
@@ -139,8 +157,30 @@ class CampaignRunner:
         self.control.abort = True
         self.control.reason = reason
 
+    def _on_retry(self, attempt: int, exc: InstrumentError) -> None:
+        self.stats.faults += 1
+        self._retrying[exc.instrument] = str(exc)
+        self.event("fault", f"retry {attempt}: {exc}", instrument=exc.instrument)
+
+    def _on_imu_event(self, kind: str, message: str) -> None:
+        # Called from the IMU reader thread; the store is safe to use from there.
+        if kind == "imu_link_lost":
+            self.stats.faults += 1
+            self.event("fault", message)
+        else:
+            self.stats.recoveries += 1
+            self.event("recovery", message)
+
+    def _note_recoveries(self) -> None:
+        for instrument in list(self._retrying):
+            self._retrying.pop(instrument)
+            self.stats.recoveries += 1
+            self.event("recovery", f"{instrument} answers again")
+
     def _check_requests(self, *, allow_pause: bool = True) -> None:
         """At a safe point: act on pause/abort requests (from signals, or from the store)."""
+        if self._retrying:
+            self._note_recoveries()
         now = time.monotonic()
         if now - self._last_request_check > 0.5:
             self._last_request_check = now
@@ -190,6 +230,14 @@ class CampaignRunner:
                 if self.state == "paused" and self.control.abort:
                     self.abort()  # a second Ctrl-C (or labrunner abort) right after the pause took effect
                     continue
+                if (self.state == "paused" and self._paused_by_fault and self.auto_resume_s is not None
+                        and self.auto_resumes < self.max_auto_resumes):
+                    self.lab.clock.sleep(self.auto_resume_s)
+                    self.auto_resumes += 1
+                    self._paused_by_fault = False
+                    self.event("recovery", f"resuming after a fault pause (auto-resume {self.auto_resumes})")
+                    self.resume()
+                    continue
                 break
             handler = getattr(self, f"_do_{self.state}")
             try:
@@ -223,6 +271,7 @@ class CampaignRunner:
         elif hard or self.p.faults.policy == "abort":
             self.abort()
         else:
+            self._paused_by_fault = True
             self.pause()
 
     # --- state handlers --------------------------------------------------------------------------
@@ -265,6 +314,8 @@ class CampaignRunner:
         self._check_requests()
         if self.k is None:
             self.all_recorded()
+        elif self.mounted_orientation == self.plan[self.k].orientation:
+            self.resume_mounted()  # resumed in the same session: the IMU is still mounted and powered
         else:
             self.preflight_ok()
 
@@ -274,7 +325,9 @@ class CampaignRunner:
         lab.table.stop()
         # The operator opens the chamber: bring it near room temperature first.
         lab.chamber.set_setpoint(self.p.remount_c)
-        self._wait_chamber(self.p.remount_c, max(2.0, self.p.soak.tolerance_c), self.p.soak.max_wait_s, "remount")
+        if not self._wait_chamber(self.p.remount_c, max(2.0, self.p.soak.tolerance_c), self.p.soak.max_wait_s,
+                                  "remount") and not self._soak_timeout("remount"):
+            return
         prompt = self.procedure.prompt_for(step.orientation)
         self.event("operator", f"remount: {prompt}", orientation=step.orientation)
         self._report()
@@ -339,13 +392,15 @@ class CampaignRunner:
         """The chamber did not stabilise in time: apply soak.on_timeout. True means carry on."""
         policy = self.p.soak.on_timeout
         step = self.plan[self.k]  # type: ignore[index]
-        msg = (f"{what} at {step.temperature_c} C did not stabilise within soak.max_wait_s "
+        target = self.p.remount_c if what == "remount" else step.temperature_c
+        msg = (f"{what} at {target} C did not stabilise within soak.max_wait_s "
                f"({self.p.soak.max_wait_s:.0f} s); on_timeout: {policy}")
         self.event("warning" if policy == "continue" else "fault", msg)
         if policy == "continue":
             return True
         self.last_error = msg
         if policy == "pause":
+            self._paused_by_fault = True
             self.pause()
         else:
             self.abort()
@@ -402,7 +457,12 @@ class CampaignRunner:
         table = self.lab.table
         table.jog(step.rate_dps)
         t_end = self.t + 120.0
-        while not table.status().settled:
+        while True:
+            st = table.status()
+            if st.fault:
+                raise InstrumentError(table.name, table.address, f"table reports fault {st.fault}", command="STA")
+            if st.settled:
+                break
             if self.t > t_end:
                 raise InstrumentError(table.name, table.address, f"did not settle at {step.rate_dps} deg/s within 120 s")
             self._wait(0.5)
@@ -432,6 +492,10 @@ class CampaignRunner:
             rate = lab.table.velocity()
             table.append((self.t, rate))
             self._interlocks(chamber_c=chamber[-1][1], rate_dps=rate)
+            if abs(rate - step.rate_dps) > max(1e-3 * abs(step.rate_dps), 0.05):
+                # The table left its rate (a drive fault): this record is not what the step asks for.
+                raise InstrumentError(lab.table.name, lab.table.address, f"table at {rate:+.4f} deg/s while "
+                                      f"recording at {step.rate_dps:+g} deg/s; the step will be recorded again")
         rec = imu.end_record(start, n, timeout_s=self._grace(self.p.record_s))
         if self.crash_hook:
             self.crash_hook("record")
@@ -506,17 +570,26 @@ class CampaignRunner:
         self.fitted()
 
     def _do_safe_stop(self) -> None:
-        problems = []
-        for what, action in (("stop the table", self.lab.table.stop),
-                             ("set the chamber to the remount temperature",
-                              lambda: self.lab.chamber.set_setpoint(self.p.remount_c))):
-            try:
-                action()
-            except Exception as exc:
-                problems.append(f"could not {what}: {exc}")
+        """Table stopped, chamber to the remount temperature; keep trying for a while, the lab must be safe."""
+        actions = {"stop the table": self.lab.table.stop,
+                   "set the chamber to the remount temperature": lambda: self.lab.chamber.set_setpoint(self.p.remount_c)}
+        problems: dict[str, str] = {}
+        deadline = self.t + SAFE_STOP_PERSIST_S
+        while True:
+            for what, action in list(actions.items()):
+                try:
+                    action()
+                    actions.pop(what)
+                    problems.pop(what, None)
+                except Exception as exc:
+                    problems[what] = f"could not {what}: {exc}"
+            if not actions or self.t >= deadline:
+                break
+            self.event("fault", "safe state not reached yet, trying again: " + "; ".join(problems.values()))
+            self.lab.clock.sleep(SAFE_STOP_RETRY_S)
         if problems:
-            self.event("fault", "safe state NOT reached: " + "; ".join(problems))
-            self.last_error = "; ".join(problems)
+            self.event("fault", "safe state NOT reached: " + "; ".join(problems.values()))
+            self.last_error = "; ".join(problems.values())
             self.fail()
             return
         self.event("info", f"lab in safe state: table stopped, chamber to {self.p.remount_c} C")
@@ -534,7 +607,7 @@ class CampaignRunner:
                     imu_temp: float | None = None) -> None:
         s = self.p.safety
         trip = None
-        if chamber_c is not None and not (s.chamber_min_c - 2.0 <= chamber_c <= s.chamber_max_c + 2.0):
+        if chamber_c is not None and not (s.chamber_min_c <= chamber_c <= s.chamber_max_c):
             trip = f"chamber at {chamber_c:.1f} C, outside the safety limits {s.chamber_min_c}..{s.chamber_max_c} C"
         elif rate_dps is not None and abs(rate_dps) > s.max_rate_dps * 1.01:
             trip = f"table at {rate_dps:.2f} deg/s, above the limit {s.max_rate_dps} deg/s"

@@ -48,6 +48,7 @@ class ChamberPlant:
         # Faults (issue: overnight reliability): capacities forced to zero.
         self.heater_failed = False
         self.compressor_failed = False
+        self.heater_stuck = False  # the heater's relay welded shut: full heat whatever the controller says
 
     def cooling_capacity(self, air_c: float) -> float:
         """Cooling rate at full output, deg C per second, at an air temperature."""
@@ -69,7 +70,7 @@ class ChamberPlant:
         if u == u_unsat or (u_unsat > 100.0 and err < 0) or (u_unsat < -100.0 and err > 0):
             self.integral += err * dt
         self.output_pct = u
-        heat = max(u, 0.0) / 100.0 * self.heating_capacity()
+        heat = (1.0 if self.heater_stuck else max(u, 0.0) / 100.0) * self.heating_capacity()
         cool = max(-u, 0.0) / 100.0 * self.cooling_capacity(self.air_c)
         loss = (p.ambient_c - self.air_c) / p.loss_tau_s
         base = self.air_c - self._fluct

@@ -64,6 +64,7 @@ class ChamberServer:
         top = max(regs.values()) + self.profile.words + 1
         device = SimDevice(id=device_id, simdata=[SimData(address=0, count=top, values=0, datatype=DataType.REGISTERS)],
                            action=self._action)
+        self._device = device
         self._server = self._loop.run(self._start(device, port))
         self.port = self._server.transport.sockets[0].getsockname()[1]
 
@@ -124,7 +125,8 @@ class ChamberServer:
         self.requests += 1
         f = self.faults
         if f.silent:
-            await asyncio.sleep(3600)
+            while f.silent:  # unanswered until the fault clears (the client has timed out by then)
+                await asyncio.sleep(0.05)
             return ExcCodes.DEVICE_BUSY
         if f.exception_code is not None:
             if f.exception_count:
@@ -165,6 +167,18 @@ class ChamberServer:
                 c.close()
             return len(conns)
         return self._loop.run(drop())
+
+    def refuse_connections(self, refuse: bool) -> None:
+        """Fault: stop listening (connects are refused) and drop clients; or listen again."""
+        async def toggle() -> None:
+            if refuse and self._server.transport is not None:
+                for c in list(self._server.active_connections.values()):
+                    c.close()
+                self._server.transport.close()
+                self._server.transport = None
+            elif not refuse and self._server.transport is None:
+                self._server = await self._start(self._device, self.port)
+        self._loop.run(toggle())
 
     def close(self) -> None:
         try:

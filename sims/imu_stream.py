@@ -27,7 +27,8 @@ MAX_CHUNK_S = 60.0  # generate long sleeps in pieces to bound memory
 
 @dataclass
 class ImuFaults:
-    stall_until: float | None = None  # send nothing until this clock time (frames are lost)
+    stall_from: float | None = None  # send nothing for frames timed in [stall_from, stall_until)
+    stall_until: float | None = None
     corrupt_frames: int = 0  # corrupt this many of the next frames (a burst)
     skip_frames: int = 0  # drop this many of the next frames (counter gap)
 
@@ -85,9 +86,10 @@ class ImuStreamSim:
         keep = np.ones(ks.size, dtype=bool)
         if f.stall_until is not None:
             times = self.world.t_on + ks / self.rate_hz
-            keep &= times >= f.stall_until  # stalled: these frames never leave the IMU
-            if keep.any():
-                f.stall_until = None
+            lo = f.stall_from if f.stall_from is not None else -np.inf
+            keep &= (times < lo) | (times >= f.stall_until)  # stalled: these frames never leave the IMU
+            if times[-1] >= f.stall_until:
+                f.stall_from = f.stall_until = None
         if f.skip_frames:
             n = min(f.skip_frames, ks.size)
             keep[:n] = False

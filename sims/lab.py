@@ -72,10 +72,12 @@ class SimLab:
         else:
             chamber = {"transport": "rtu", "serial_port": self.chamber.url, "baudrate": 115200}
         chamber["profile"] = self.chamber_profile
+        # Loopback answers within a millisecond: short timeouts keep faulted dry runs quick.
+        chamber["timeout_s"] = 0.25
         return {
             "name": "simulated lab",
             "chamber": chamber,
-            "table": {"port": self.table_port.url, "baudrate": 115200},
+            "table": {"port": self.table_port.url, "baudrate": 115200, "timeout_s": 0.25},
             "imu": {"port": self.imu_port.url, "baudrate": 921600, "rate_hz": self.config.imu_rate_hz},
         }
 

@@ -33,13 +33,13 @@ class TablePlant:
         self._seg_r1 = np.array([0.0])
         self._seg_t1 = np.array([start_t])
         self.commanded_dps = 0.0
-        self.fault: str | None = None  # set by fault injection: the table refuses to move
+        self.overspeed = 1.0  # fault injection: the drive holds this multiple of the commanded rate
 
     def _held_rate(self, command: float) -> float:
         # Half of the accuracy budget as a static error, half as ripple.
         err = float(np.clip(self._rng.normal(0.0, 0.2 * self.p.rate_accuracy), -0.5 * self.p.rate_accuracy,
                             0.5 * self.p.rate_accuracy))
-        return command * (1.0 + err)
+        return command * (1.0 + err) * self.overspeed
 
     def command(self, t: float, rate_dps: float) -> None:
         """Command a new rate at time t (0 stops the table)."""

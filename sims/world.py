@@ -90,6 +90,7 @@ class SimWorld:
         self.powered = True
         self.run = 1
         self.t_on = float(start_t)
+        self.imu_extra_heat_c = 0.0  # fault injection: a component overheating inside the IMU
         # History on the integration grid: columns t, case, air; grows, then drops its oldest half.
         self._hist = np.empty((4096, 3))
         self._hist[0] = (float(start_t), self.case_c, self.chamber.air_c)
@@ -140,7 +141,8 @@ class SimWorld:
             if not self.powered:
                 return case
             since_on = np.maximum(np.asarray(times, dtype=float) - self.t_on, 0.0)
-            return case + self.thermal.self_heat_c * (1.0 - np.exp(-since_on / self.thermal.self_heat_tau_s))
+            return case + self.imu_extra_heat_c + self.thermal.self_heat_c * (
+                1.0 - np.exp(-since_on / self.thermal.self_heat_tau_s))
 
     def imu_inputs(self, times: np.ndarray) -> ImuInputs:
         times = np.asarray(times, dtype=float)

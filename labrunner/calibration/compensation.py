@@ -17,7 +17,7 @@ from labrunner.campaign_csv import OUTPUT_COLUMNS
 
 from .thermal_poly import PolyModel, TriadPoly
 
-CHUNK = 1 << 18
+CHUNK = 1 << 15  # rows per pass: the temporaries stay in cache
 
 
 @dataclass
@@ -36,26 +36,32 @@ class Compensated:
         return out
 
 
+def _horner(coef: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """sum_k coef[k] tau^k for a 1-D coefficient vector."""
+    out = np.full(tau.shape, coef[-1])
+    for c in coef[-2::-1]:
+        out *= tau
+        out += c
+    return out
+
+
 def invert_triad(model: TriadPoly, y: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
     """(N, 3) u solving (I + S(T)) u = y - b(T)."""
-    p = np.asarray(temp_c, dtype=float)[:, None] - model.t_ref_c
-    p = p ** np.arange(model.order + 1)  # (N, m)
-    r = y - p @ model.bias.T
-    s = p @ model.scale.reshape(9, -1).T  # (N, 9): S00 S01 S02 S10 ...
-    a00, a01, a02 = 1 + s[:, 0], s[:, 1], s[:, 2]
-    a10, a11, a12 = s[:, 3], 1 + s[:, 4], s[:, 5]
-    a20, a21, a22 = s[:, 6], s[:, 7], 1 + s[:, 8]
+    tau = np.asarray(temp_c, dtype=float) - model.t_ref_c
+    r0, r1, r2 = (y[:, i] - _horner(model.bias[i], tau) for i in range(3))
+    s = [_horner(model.scale[i, j], tau) for i in range(3) for j in range(3)]
+    a00, a01, a02 = 1 + s[0], s[1], s[2]
+    a10, a11, a12 = s[3], 1 + s[4], s[5]
+    a20, a21, a22 = s[6], s[7], 1 + s[8]
     c00 = a11 * a22 - a12 * a21
     c01 = a12 * a20 - a10 * a22
     c02 = a10 * a21 - a11 * a20
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    r0, r1, r2 = r[:, 0], r[:, 1], r[:, 2]
-    u = np.empty_like(r)
+    inv_det = 1.0 / (a00 * c00 + a01 * c01 + a02 * c02)
+    u = np.empty((tau.size, 3))
     # u = adj(A) r / det
-    u[:, 0] = c00 * r0 + (a02 * a21 - a01 * a22) * r1 + (a01 * a12 - a02 * a11) * r2
-    u[:, 1] = c01 * r0 + (a00 * a22 - a02 * a20) * r1 + (a02 * a10 - a00 * a12) * r2
-    u[:, 2] = c02 * r0 + (a01 * a20 - a00 * a21) * r1 + (a00 * a11 - a01 * a10) * r2
-    u /= det[:, None]
+    u[:, 0] = (c00 * r0 + (a02 * a21 - a01 * a22) * r1 + (a01 * a12 - a02 * a11) * r2) * inv_det
+    u[:, 1] = (c01 * r0 + (a00 * a22 - a02 * a20) * r1 + (a02 * a10 - a00 * a12) * r2) * inv_det
+    u[:, 2] = (c02 * r0 + (a01 * a20 - a00 * a21) * r1 + (a00 * a11 - a01 * a10) * r2) * inv_det
     return u
 
 

@@ -175,8 +175,9 @@ class FitResult:
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready: provenance, data summary, models, per-step calibration, evaluation."""
-        return {
+        """JSON-ready (no NaN: unknown values are null): provenance, data summary, models,
+        per-step calibration, evaluation."""
+        return json_clean({
             "format": "labrunner-calibration/1",
             "provenance": self.provenance,
             "data": self.data_summary,
@@ -192,7 +193,22 @@ class FitResult:
             "six_position": {t: [c.to_dict() for c in cals] for t, cals in self.models.six_position.items()},
             "evaluation": [r.to_dict() for r in self.evaluation],
             "timings_s": self.timings_s,
-        }
+        })
+
+
+def json_clean(o: Any) -> Any:
+    """Recursively: numpy scalars/arrays to Python, non-finite floats to None."""
+    if isinstance(o, dict):
+        return {str(k): json_clean(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [json_clean(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return json_clean(o.tolist())
+    if isinstance(o, np.generic):
+        o = o.item()
+    if isinstance(o, float) and not np.isfinite(o):
+        return None
+    return o
 
 
 def _options_dict(o: FitOptions) -> dict[str, Any]:

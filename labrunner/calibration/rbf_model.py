@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .compensation import Compensated, compensate_poly
-from .rbf import DEFAULT_WIDTHS, RbfNetwork, train_rbf
+from .rbf import DEFAULT_WIDTHS, RbfNetwork, normalisation, train_rbf
 from .records import Records
 from .thermal_poly import PolyModel
 from .triads import CHANNELS
@@ -36,10 +36,13 @@ class RbfOptions:
     """Training settings of the networks."""
 
     widths: tuple[float, ...] = DEFAULT_WIDTHS
-    max_centres: int = 80
-    max_candidates: int = 400
+    max_centres: int = 40
+    max_candidates: int = 250
     patience: int = 6
     input_margin: float = 0.02  # inputs beyond the training range by more than this fraction are flagged
+    # Floor of the temperature width (deg C) for the improved variants; None: the median spacing
+    # of the calibration temperatures. The paper variant keeps one width for all inputs.
+    min_temp_width_c: float | None = None
 
 
 @dataclass
@@ -108,6 +111,15 @@ def network_inputs(variant: str, y: np.ndarray, temp_c: np.ndarray, channel: int
     return np.column_stack([y[:, channel], temp_c])
 
 
+def step_spacing(temp_c: np.ndarray, gap_c: float = 2.0) -> float:
+    """Median spacing of the distinct calibration temperatures (0 with fewer than two)."""
+    t = np.sort(np.asarray(temp_c, dtype=float))
+    if t.size < 2:
+        return 0.0
+    levels = t[np.concatenate(([True], np.diff(t) > gap_c))]
+    return float(np.median(np.diff(levels))) if levels.size > 1 else 0.0
+
+
 def train_rbf_model(records: Records, variant: str = "paper", base: PolyModel | None = None,
                     options: RbfOptions | None = None,
                     progress: Callable[[str], None] | None = None) -> RbfModel:
@@ -122,16 +134,25 @@ def train_rbf_model(records: Records, variant: str = "paper", base: PolyModel | 
     temp = records.temp_c
     start = compensate_poly(base, y, temp).values if variant == "hybrid" else y
     target = records.reference - start
-    w = records.duration_s
+    # Train as on the samples themselves: record means weigh by their row counts, and the
+    # rows' scatter about each mean enters GCV as the constant it is (see rbf.train_rbf).
+    w = records.n_rows
+    within = np.where(np.isfinite(records.sem), records.sem ** 2, 0.0) * (w * (w - 1))[:, None]
+    temp_width = opt.min_temp_width_c if opt.min_temp_width_c is not None else step_spacing(temp)
     nets: list[RbfNetwork] = []
     for k, name in enumerate(CHANNELS):
         if progress:
             progress(f"RBF ({variant}) {name}: {len(records)} records")
         x = network_inputs(variant, y, temp, k)
+        offset, scale = normalisation(x)
+        floor = np.zeros(x.shape[1])
+        if variant != "paper":
+            floor[-1] = temp_width / scale[-1]
         nets.append(train_rbf(x, target[:, k], w, widths=opt.widths, max_centres=opt.max_centres,
-                              max_candidates=opt.max_candidates, patience=opt.patience))
+                              max_candidates=opt.max_candidates, patience=opt.patience, min_width=floor,
+                              in_offset=offset, in_scale=scale, counts=True, within_ss=float(within[:, k].sum())))
     notes: list[str] = []
-    if temp.size and np.ptp(temp) == 0:
+    if step_spacing(temp) == 0:
         notes.append("one temperature only: the networks cannot learn a temperature dependence")
     return RbfModel(variant=variant, networks=nets, t_min_c=float(temp.min()), t_max_c=float(temp.max()),
                     base=base if variant == "hybrid" else None, input_margin=opt.input_margin, notes=notes)

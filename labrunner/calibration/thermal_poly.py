@@ -136,7 +136,8 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0) -
     notes: list[str] = []
     partial = ident.any(axis=1) & ~ident.all(axis=1)
     if partial.any():
-        notes.append(f"{triad}: some temperature coefficients of {', '.join(_block_label(b) for b in np.flatnonzero(partial))}"
+        blocks = ", ".join(_block_label(b) for b in np.flatnonzero(partial))
+        notes.append(f"{triad}: some temperature coefficients of {blocks}"
                      " cannot be fitted from these temperatures; they are set to 0")
     missing = [(c, b) for c in range(3) for b in range(4) if not ident[b].any()]
     not_fitted = [describe_missing(triad, missing, records.orientation, is_rotating(records))] if missing else []
@@ -144,7 +145,8 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0) -
     rms = np.sqrt(np.sum(w[:, None] * fit.residual ** 2, axis=0) / np.sum(w)) if len(records) else np.full(3, np.nan)
     return TriadPoly(
         triad=triad, order=order, t_ref_c=t_ref_c, bias=bias, scale=scale, bias_std=bias_std, scale_std=scale_std,
-        t_min_c=float(temp.min()), t_max_c=float(temp.max()), method="joint", fitted=fitted, not_fitted=not_fitted, notes=notes,
+        t_min_c=float(temp.min()), t_max_c=float(temp.max()), method="joint", fitted=fitted, not_fitted=not_fitted,
+        notes=notes,
         residual_rms=rms,
     )
 

@@ -13,6 +13,7 @@ from typing import Any
 from labrunner.errors import UserError
 
 EXIT = {"done": 0, "paused": 3, "aborted": 4, "failed": 1}
+AUTO_RESUME_S = 900.0  # a rehearsed operator resumes a fault pause after 15 minutes (lab time)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,6 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="dry runs: inject N seeded random instrument faults across the campaign")
     run.add_argument("--fit-out", type=Path, default=None,
                      help="directory for the fitted models (default: next to the database, <db>_fit/)")
+    run.add_argument("--no-auto-resume", action="store_true",
+                     help="dry runs with injected faults: stop at a fault pause instead of resuming after 15 min "
+                          "of lab time as an operator would")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
 
@@ -143,6 +147,10 @@ def _execute(runner: Any, quiet: bool, db: Path) -> int:
           f"({s.steps_recorded} this session, {s.samples} samples, {s.steps_rerecorded} recorded again, "
           f"{s.faults} faults); lab time {runner.t / 3600:.2f} h, wall {time.time() - s.started_wall:.1f} s",
           file=sys.stderr)
+    inj = getattr(runner, "fault_injector", None)
+    if inj is not None:
+        print(f"faults injected: {inj.injected} ({', '.join(f'{k} {v}' for k, v in sorted(inj.by_kind.items()))}); "
+              f"auto-resumed {runner.auto_resumes} time(s), {s.recoveries} recoveries logged", file=sys.stderr)
     if runner.last_error and final != "done":
         print(f"reason: {runner.last_error}", file=sys.stderr)
     if final in ("paused", "aborted", "failed"):
@@ -203,8 +211,9 @@ def cmd_run(args: argparse.Namespace) -> int:
                              procedure_path=str(args.procedure.resolve()), procedure_sha256=procedure.sha256,
                              lab_config=lab_dict, mode="sim" if args.sim else "lab", sim_config=sim_dict,
                              clock_t0=lab.clock.now(), plan=procedure.steps())
+    auto = AUTO_RESUME_S if (args.sim and _has_fault_plan(sim_dict) and not args.no_auto_resume) else None
     runner = CampaignRunner(procedure, lab, store, cid, fit_out_dir=_fit_dir(args.db, args.fit_out),
-                            crash_hook=_crash_hook())
+                            crash_hook=_crash_hook(), auto_resume_s=auto)
     _attach_faults(runner, lab, sim_dict)
     print(f"campaign {cid} '{procedure.name}' in {args.db}: {len(runner.plan)} steps, "
           f"{len(runner.plan) * procedure.frames_per_record:,} samples planned, about "
@@ -233,9 +242,13 @@ def _sim_config_dict(path: Path | None) -> dict[str, Any]:
     return data
 
 
-def _attach_faults(runner: Any, lab: Any, sim_dict: dict[str, Any] | None) -> None:
+def _has_fault_plan(sim_dict: dict[str, Any] | None) -> bool:
     faults = (sim_dict or {}).get("faults") or {}
-    if lab.sim is None or not (faults.get("random") or faults.get("schedule")):
+    return bool(faults.get("random") or faults.get("schedule"))
+
+
+def _attach_faults(runner: Any, lab: Any, sim_dict: dict[str, Any] | None) -> None:
+    if lab.sim is None or not _has_fault_plan(sim_dict):
         return  # static plant faults (faults.chamber) are applied by the simulated lab itself
     from labrunner.fault_plan import FaultInjector
 
@@ -283,8 +296,9 @@ def cmd_resume(args: argparse.Namespace) -> int:
         else:
             config = load_lab_config(args.lab)[0] if args.lab else lab_config_from_dict(info.lab_config, "stored lab configuration")
             lab = real_lab(config, max_rate_dps=procedure.model.safety.max_rate_dps)
+        faulty = info.mode == "sim" and _has_fault_plan(info.sim_config)
         runner = CampaignRunner(procedure, lab, store, cid, fit_out_dir=_fit_dir(args.db, args.fit_out),
-                                crash_hook=_crash_hook())
+                                crash_hook=_crash_hook(), auto_resume_s=AUTO_RESUME_S if faulty else None)
         _attach_faults(runner, lab, info.sim_config)
         print(f"resuming campaign {cid} '{info.name}' ({info.status}) at step {nxt} of {len(runner.plan)}",
               file=sys.stderr)

@@ -55,7 +55,24 @@ def load_sim_config(path: Path | None) -> Any:
     if not isinstance(data, dict):
         raise ConfigError([f"{path}:1: a sim configuration must be a mapping"])
     try:
-        return SimLabConfig.from_dict(data)
+        config = SimLabConfig.from_dict(data)
+        faults = data.get("faults") or {}
+        if not isinstance(faults, dict):
+            raise ValueError("faults must be a mapping")
+        from labrunner.fault_plan import Fault
+
+        for key in ("schedule", "random"):
+            items = faults.get(key) or []
+            if not isinstance(items, list):
+                raise ValueError(f"faults.{key} must be a list")
+            for i, item in enumerate(items):
+                if not isinstance(item, dict):
+                    raise ValueError(f"faults.{key}[{i}] must be a mapping with at_s, kind, duration_s or count")
+                try:
+                    Fault(**item)
+                except TypeError as exc:
+                    raise ValueError(f"faults.{key}[{i}]: {exc}") from None
+        return config
     except (ValueError, TypeError, OSError) as exc:
         raise ConfigError([f"{path}: {exc}"]) from None
 

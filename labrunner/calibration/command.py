@@ -1,0 +1,114 @@
+"""`labrunner fit DB|CSV [--json OUT] [--out DIR]`: fit, summarise, write models and tables."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from labrunner.data_source import load_campaign_data
+from labrunner.errors import UserError
+
+from .evaluation import SPLITS
+from .export import save_model, write_c_header
+from .fit import FitOptions, FitResult, fit_campaign
+from .rbf_model import VARIANTS
+from .report import evaluation_csv, summary_markdown
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "fit", help="fit thermal calibration models (polynomial, RBF network) to a campaign",
+        description="Fit the six-position calibration per temperature step, the thermal polynomial and the RBF "
+                    "networks to a campaign (CSV or labrunner database), evaluate them on held-out data and "
+                    "write the models (JSON, C header).")
+    p.add_argument("data", help="campaign CSV or labrunner SQLite database")
+    p.add_argument("--campaign", type=int, default=None, help="campaign id within a database holding several")
+    p.add_argument("--json", metavar="OUT", help="write models, evaluation and provenance as JSON ('-' for stdout)")
+    p.add_argument("--out", metavar="DIR", help="write model JSON files, the C header and evaluation tables here")
+    p.add_argument("--order", default="3", help="polynomial order, or 'cv' to choose it by cross-validation "
+                   "(default 3)")
+    p.add_argument("--poly-method", choices=("joint", "two_stage"), default="joint",
+                   help="joint one-stage fit (default) or the paper's two-stage fit")
+    p.add_argument("--rbf", default=",".join(VARIANTS),
+                   help=f"RBF variants to train, comma-separated from {', '.join(VARIANTS)} (default all)")
+    p.add_argument("--export-rbf", default=None, help="RBF variant exported to the model files (default hybrid, "
+                   "else the first trained)")
+    p.add_argument("--splits", default=",".join(SPLITS), help="evaluation splits, comma-separated (default all)")
+    p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random held-out split")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=run)
+
+
+def _options(args: argparse.Namespace) -> FitOptions:
+    order: int | str
+    if args.order == "cv":
+        order = "cv"
+    else:
+        try:
+            order = int(args.order)
+        except ValueError:
+            raise UserError(f"--order must be an integer or 'cv', not {args.order!r}") from None
+    variants = tuple(v.strip() for v in args.rbf.split(",") if v.strip())
+    export = args.export_rbf or ("hybrid" if "hybrid" in variants else (variants[0] if variants else ""))
+    splits = tuple(s.strip() for s in args.splits.split(",") if s.strip())
+    return FitOptions(poly_order=order, poly_method=args.poly_method, rbf_variants=variants, rbf_export=export,
+                      evaluate=not args.no_eval, splits=splits, seed=args.seed)
+
+
+def run(args: argparse.Namespace) -> int:
+    options = _options(args)
+    start = time.perf_counter()
+
+    def progress(msg: str) -> None:
+        if not args.quiet:
+            print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    progress(f"loading {args.data}")
+    data = load_campaign_data(args.data, args.campaign) if args.campaign is not None else load_campaign_data(args.data)
+    result = fit_campaign(data.frame, options, provenance=data.provenance, progress=progress)
+    text = summary_markdown(result)
+    if args.json != "-":
+        print(text)
+    if args.json:
+        payload = json.dumps(result.to_dict(), indent=1, allow_nan=False, default=_jsonable)
+        if args.json == "-":
+            sys.stdout.write(payload + "\n")
+        else:
+            Path(args.json).write_text(payload)
+            progress(f"wrote {args.json}")
+    if args.out:
+        written = write_outputs(result, Path(args.out), text)
+        progress(f"wrote {', '.join(written)} in {args.out}")
+    return 0
+
+
+def write_outputs(result: FitResult, out: Path, summary: str | None = None) -> list[str]:
+    """Write the model JSON files, the C header and the evaluation tables into `out`; returns the names."""
+    out.mkdir(parents=True, exist_ok=True)
+    prov = result.provenance
+    save_model(result.polynomial, out / "polynomial.json", prov)
+    written = ["polynomial.json"]
+    if result.rbf is not None:
+        save_model(result.rbf, out / "rbf.json", prov)
+        written.append("rbf.json")
+    comment = (f"labrunner {prov.get('software', {}).get('version', '?')}, data {prov.get('source', '?')}, "
+               f"fitted {prov.get('fitted_at', '?')}")
+    write_c_header(out / "imu_calibration.h", result.polynomial, result.rbf, comment=comment)
+    (out / "summary.md").write_text((summary if summary is not None else summary_markdown(result)) + "\n")
+    (out / "evaluation.csv").write_text(evaluation_csv(result))
+    return written + ["imu_calibration.h", "summary.md", "evaluation.csv"]
+
+
+def _jsonable(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -1,0 +1,249 @@
+"""Model files: JSON (both models, reloadable) and a C header for a microcontroller.
+
+The header is self-contained C99: the coefficient tables, the network tables and small
+inline functions that compensate one sample,
+
+    int <prefix>poly_compensate(const lr_real y[6], lr_real temp_c, lr_real u[6]);
+    int <prefix>rbf_compensate(const lr_real y[6], lr_real temp_c, lr_real u[6]);
+
+y and u are [ax ay az (g), gx gy gz (deg/s)]; both return 1 when the sample lies outside
+the data the model was fitted to (extrapolation), else 0. `lr_real` is float unless
+LR_USE_DOUBLE is defined before the include.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .rbf_model import RbfModel
+from .thermal_poly import PolyModel, TriadPoly
+
+FORMAT = "labrunner-calibration-model/1"
+
+
+def model_to_json(model: PolyModel | RbfModel, provenance: dict[str, Any] | None = None) -> dict[str, Any]:
+    from .fit import json_clean
+
+    return json_clean({"format": FORMAT, "provenance": provenance or {}, "model": model.to_dict()})
+
+
+def save_model(model: PolyModel | RbfModel, path: str | Path, provenance: dict[str, Any] | None = None) -> None:
+    Path(path).write_text(json.dumps(model_to_json(model, provenance), indent=1, allow_nan=False))
+
+
+def load_model(path: str | Path) -> PolyModel | RbfModel:
+    """Read a model written by `save_model` (or the `models` entries of `labrunner fit --json`)."""
+    data = json.loads(Path(path).read_text())
+    return model_from_dict(data.get("model", data))
+
+
+def model_from_dict(d: dict[str, Any]) -> PolyModel | RbfModel:
+    kind = d.get("kind")
+    if kind == "polynomial":
+        return PolyModel.from_dict(d)
+    if kind == "rbf":
+        return RbfModel.from_dict(d)
+    raise ValueError(f"not a labrunner calibration model (kind {kind!r})")
+
+
+# --- C header ------------------------------------------------------------------------
+
+
+def _num(v: float) -> str:
+    v = float(v)
+    if not np.isfinite(v):
+        raise ValueError("cannot export a non-finite number to C")
+    return repr(v) if v != int(v) or abs(v) >= 1e15 else f"{v:.1f}"
+
+
+def _array(values: np.ndarray, per_line: int = 6) -> str:
+    flat = [_num(v) for v in np.asarray(values, dtype=float).ravel()]
+    if not flat:
+        return "{0}"
+    lines = [", ".join(flat[i:i + per_line]) for i in range(0, len(flat), per_line)]
+    return "{\n    " + ",\n    ".join(lines) + "\n}"
+
+
+_COMMON = r"""
+#include <math.h>
+
+#ifdef LR_USE_DOUBLE
+typedef double lr_real;
+#define LR_EXP(x) exp(x)
+#else
+typedef float lr_real;
+#define LR_EXP(x) expf(x)
+#endif
+
+#ifndef LR_CALIBRATION_COMMON
+#define LR_CALIBRATION_COMMON
+/* One Gaussian RBF network: out = sum_j w_j exp(-sum_d (z_d - c_jd)^2 / (2 r_d^2)),
+   z = (x - offset) / scale. */
+typedef struct {
+    int dim, n;
+    const lr_real *centres;  /* n x dim, normalised */
+    const lr_real *width;    /* dim */
+    const lr_real *weights;  /* n */
+    const lr_real *offset, *scale;   /* dim: input normalisation */
+    const lr_real *in_min, *in_max;  /* dim: training input range (raw units) */
+} lr_rbf_net;
+
+static inline lr_real lr_rbf_eval(const lr_rbf_net *net, const lr_real *x, lr_real margin, int *outside)
+{
+    lr_real z[8];
+    lr_real out = 0;
+    int d, j;
+    for (d = 0; d < net->dim; ++d) {
+        lr_real span = (net->in_max[d] - net->in_min[d]) * margin;
+        if (x[d] < net->in_min[d] - span || x[d] > net->in_max[d] + span) *outside = 1;
+        z[d] = (x[d] - net->offset[d]) / net->scale[d] / net->width[d];
+    }
+    for (j = 0; j < net->n; ++j) {
+        lr_real e = 0;
+        for (d = 0; d < net->dim; ++d) {
+            lr_real t = z[d] - net->centres[j * net->dim + d] / net->width[d];
+            e += t * t;
+        }
+        out += net->weights[j] * LR_EXP(-0.5f * e);
+    }
+    return out;
+}
+
+/* Polynomial triad: solve (I + S(T)) u = y - b(T), coefficients of (T - t_ref)^k, k = 0..order. */
+static inline void lr_poly_triad(const lr_real *bias, const lr_real *scale, int order, lr_real t_ref,
+                                 const lr_real y[3], lr_real temp_c, lr_real u[3])
+{
+    lr_real tau = temp_c - t_ref, a[9], r[3], c00, c01, c02, det;
+    int i, k;
+    for (i = 0; i < 3; ++i) {
+        lr_real b = 0;
+        for (k = order; k >= 0; --k) b = b * tau + bias[i * (order + 1) + k];
+        r[i] = y[i] - b;
+    }
+    for (i = 0; i < 9; ++i) {
+        lr_real s = 0;
+        for (k = order; k >= 0; --k) s = s * tau + scale[i * (order + 1) + k];
+        a[i] = s + ((i % 4 == 0) ? 1 : 0);
+    }
+    c00 = a[4] * a[8] - a[5] * a[7];
+    c01 = a[5] * a[6] - a[3] * a[8];
+    c02 = a[3] * a[7] - a[4] * a[6];
+    det = a[0] * c00 + a[1] * c01 + a[2] * c02;
+    u[0] = (c00 * r[0] + (a[2] * a[7] - a[1] * a[8]) * r[1] + (a[1] * a[5] - a[2] * a[4]) * r[2]) / det;
+    u[1] = (c01 * r[0] + (a[0] * a[8] - a[2] * a[6]) * r[1] + (a[2] * a[3] - a[0] * a[5]) * r[2]) / det;
+    u[2] = (c02 * r[0] + (a[1] * a[6] - a[0] * a[7]) * r[1] + (a[0] * a[4] - a[1] * a[3]) * r[2]) / det;
+}
+#endif /* LR_CALIBRATION_COMMON */
+"""
+
+
+def _poly_tables(p: str, name: str, tp: TriadPoly) -> list[str]:
+    m = tp.order + 1
+    return [
+        f"#define {p.upper()}{name.upper()}_ORDER {tp.order}",
+        f"static const lr_real {p}{name}_t_ref_c = {_num(tp.t_ref_c)};",
+        f"/* bias[i][k]: axis i, coefficient of (T - t_ref)^k ({'g' if name == 'accel' else 'deg/s'}) */",
+        f"static const lr_real {p}{name}_bias[3 * {m}] = {_array(tp.bias, m)};",
+        "/* scale[i][j][k]: S_ij (scale-factor error on the diagonal, misalignment off it) */",
+        f"static const lr_real {p}{name}_scale[9 * {m}] = {_array(tp.scale, m)};",
+    ]
+
+
+def _poly_section(p: str, model: PolyModel) -> list[str]:
+    out = ["/* ---- polynomial thermal model ---- */"]
+    out += _poly_tables(p, "accel", model.accel) + _poly_tables(p, "gyro", model.gyro)
+    out += [
+        f"static const lr_real {p}poly_t_min_c = {_num(model.t_min_c)}, {p}poly_t_max_c = {_num(model.t_max_c)};",
+        "",
+        f"static inline int {p}poly_compensate(const lr_real y[6], lr_real temp_c, lr_real u[6])",
+        "{",
+        f"    lr_poly_triad({p}accel_bias, {p}accel_scale, {p.upper()}ACCEL_ORDER, {p}accel_t_ref_c, y, temp_c, u);",
+        f"    lr_poly_triad({p}gyro_bias, {p}gyro_scale, {p.upper()}GYRO_ORDER, {p}gyro_t_ref_c,",
+        "                  y + 3, temp_c, u + 3);",
+        f"    return temp_c < {p}poly_t_min_c || temp_c > {p}poly_t_max_c;",
+        "}",
+    ]
+    return out
+
+
+def _rbf_section(p: str, model: RbfModel) -> list[str]:
+    from .triads import CHANNELS
+
+    out = [f"/* ---- RBF networks (variant: {model.variant}) ---- */"]
+    if model.base is not None:
+        out += _poly_section(p + "base_", model.base)
+    names = []
+    for ch, net in zip(CHANNELS, model.networks):
+        n = f"{p}net_{ch}"
+        names.append(n)
+        dim = net.in_offset.size
+        cnt = max(net.n_centres, 1)
+        centres = net.centres if net.n_centres else np.zeros((1, dim))
+        weights = net.weights if net.n_centres else np.zeros(1)
+        out += [
+            f"/* {ch}: {net.n_centres} centres, inputs: {', '.join(model.to_dict()['inputs'][ch])} */",
+            f"static const lr_real {n}_centres[{cnt * dim}] = {_array(centres, dim)};",
+            f"static const lr_real {n}_width[{dim}] = {_array(net.width)};",
+            f"static const lr_real {n}_weights[{cnt}] = {_array(weights)};",
+            f"static const lr_real {n}_offset[{dim}] = {_array(net.in_offset)};",
+            f"static const lr_real {n}_scale[{dim}] = {_array(net.in_scale)};",
+            f"static const lr_real {n}_min[{dim}] = {_array(net.input_min)};",
+            f"static const lr_real {n}_max[{dim}] = {_array(net.input_max)};",
+            f"static const lr_rbf_net {n} = {{{dim}, {net.n_centres}, {n}_centres, {n}_width, {n}_weights, "
+            f"{n}_offset, {n}_scale, {n}_min, {n}_max}};",
+        ]
+    out += [
+        f"static const lr_rbf_net *const {p}nets[6] = {{{', '.join('&' + n for n in names)}}};",
+        f"static const lr_real {p}rbf_t_min_c = {_num(model.t_min_c)}, {p}rbf_t_max_c = {_num(model.t_max_c)};",
+        "",
+        f"static inline int {p}rbf_compensate(const lr_real y[6], lr_real temp_c, lr_real u[6])",
+        "{",
+        "    lr_real x[4];",
+        "    int k, outside = 0;",
+    ]
+    if model.base is not None:
+        out.append(f"    outside = {p}base_poly_compensate(y, temp_c, u);")
+    else:
+        out += ["    for (k = 0; k < 6; ++k) u[k] = y[k];",
+                f"    outside = temp_c < {p}rbf_t_min_c || temp_c > {p}rbf_t_max_c;"]
+    out.append("    for (k = 0; k < 6; ++k) {")
+    if model.variant == "triad":
+        out += ["        int base = k < 3 ? 0 : 3;",
+                "        x[0] = y[base]; x[1] = y[base + 1]; x[2] = y[base + 2]; x[3] = temp_c;"]
+    else:
+        out += ["        x[0] = y[k]; x[1] = temp_c;"]
+    out += [f"        u[k] += lr_rbf_eval({p}nets[k], x, {_num(model.input_margin)}, &outside);",
+            "    }",
+            "    return outside;",
+            "}"]
+    return out
+
+
+def c_header(poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
+             comment: str = "") -> str:
+    """The C header text for the given models (either may be None)."""
+    guard = f"{prefix.upper()}CALIBRATION_H"
+    lines = [
+        "/* Thermal calibration of a MEMS IMU, generated by labrunner (`labrunner fit --out`).",
+        " * y, u: [ax ay az] g, [gx gy gz] deg/s; temp_c: the IMU's temperature sensor.",
+        " * Compensation (paper Eq. 11): u = y + dU(y, T) (RBF) or u = (I + S(T))^-1 (y - b(T)) (polynomial).",
+        " * Functions return 1 when the sample is outside the fitted range (extrapolation). */",
+    ]
+    if comment:
+        lines += ["/* " + comment.replace("*/", "* /") + " */"]
+    lines += [f"#ifndef {guard}", f"#define {guard}", _COMMON]
+    if poly is not None:
+        lines += _poly_section(prefix, poly) + [""]
+    if rbf is not None:
+        lines += _rbf_section(prefix, rbf) + [""]
+    lines += [f"#endif /* {guard} */", ""]
+    return "\n".join(lines)
+
+
+def write_c_header(path: str | Path, poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
+                   comment: str = "") -> None:
+    Path(path).write_text(c_header(poly, rbf, prefix, comment))

@@ -1,0 +1,104 @@
+"""RBF network training: forward selection with OLS, GCV, ridge; record means vs raw samples."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from calib_campaigns import make_campaign
+
+from labrunner.calibration.rbf import farthest_points, forward_select, gaussian_design, ridge_gcv, train_rbf
+from labrunner.calibration.rbf_model import RbfOptions, network_inputs, train_rbf_model
+from labrunner.calibration.records import frame_arrays, reference_values, segment_records
+from sims.imu_model import default_imu_model
+
+
+def _smooth(x: np.ndarray) -> np.ndarray:
+    return np.sin(2.5 * x[:, 0]) * np.exp(-x[:, 1] ** 2) + 0.3 * x[:, 1]
+
+
+def test_network_learns_a_smooth_function_and_gcv_stops_early():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (600, 2))
+    y = _smooth(x) + rng.normal(0, 0.05, 600)
+    net = train_rbf(x, y, max_centres=100, max_candidates=200)
+    xt = rng.uniform(-0.9, 0.9, (2000, 2))
+    err = net.predict(xt, precise=True) - _smooth(xt)
+    assert np.sqrt(np.mean(err ** 2)) < 0.03  # well below the 0.05 noise: it generalises
+    assert 3 <= net.n_centres < 60  # GCV stopped long before the 100 allowed
+    assert net.n_candidates == 200
+    # Single precision (the fast path, and a microcontroller's float) stays within its stated bound
+    assert np.abs(net.predict(xt) - net.predict(xt, precise=True)).max() <= net.float32_error_bound
+    assert net.float32_error_bound < 1e-3 * np.abs(y).max()
+
+
+def test_pure_noise_selects_nothing_useful():
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-1, 1, (400, 2))
+    net = train_rbf(x, rng.normal(0, 1.0, 400), max_centres=50)
+    assert net.n_centres <= 5
+    assert np.abs(net.predict(x)).std() < 0.3
+
+
+def test_forward_selection_matches_explicit_least_squares():
+    """The incremental OLS bookkeeping equals a direct least-squares fit on the chosen centres."""
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-1, 1, (300, 2))
+    y = _smooth(x)
+    cand = x[farthest_points(x, 60)]
+    phi = gaussian_design(x, cand, 0.3)
+    sel, gcv = forward_select(phi, y, np.ones(300), max_centres=15, patience=100)
+    assert len(sel) == 15
+    h = phi[:, sel]
+    rss = np.sum((y - h @ np.linalg.lstsq(h, y, rcond=None)[0]) ** 2)
+    assert gcv <= 300 * rss / (300 - 15) ** 2 * (1 + 1e-6)  # regularised GCV is never worse than lambda = 0
+    w, lam, g2 = ridge_gcv(h, y, np.ones(300))
+    assert np.sqrt(np.mean((h @ w - y) ** 2)) <= np.sqrt(rss / 300) * 1.05  # ridge costs little fit
+
+
+def test_candidate_set_does_not_grow_with_samples():
+    rng = np.random.default_rng(3)
+    for n in (1000, 20000):
+        x = rng.uniform(-1, 1, (n, 2))
+        net = train_rbf(x, _smooth(x), max_centres=10, max_candidates=150, widths=(0.3,))
+        assert net.n_candidates == 150
+
+
+@pytest.fixture(scope="module")
+def raw_campaign():
+    # Raw 50 Hz samples: 3 temperatures x 6 orientations x 8 rates x 6 s = 43k rows.
+    return make_campaign(default_imu_model(), seed=21, temperatures_c=(-25.0, 15.0, 55.0), record_s=6.0)
+
+
+def test_training_on_record_means_equals_training_on_raw_samples(raw_campaign):
+    """The scalable path (record means weighted by duration) gives the network raw samples give."""
+    widths = (0.15, 0.3, 0.6)
+    rec = segment_records(raw_campaign)
+    model = train_rbf_model(rec, "paper", options=RbfOptions(widths=widths))
+    a = frame_arrays(raw_campaign)
+    rows = rec.row_record >= 0
+    y, temp = a["y"][rows], a["temp"][rows]
+    truth = reference_values(a["orientation"][rows], a["rate"][rows])
+    lab = rec.row_record[rows]
+    for k, net in enumerate(model.networks):
+        x_rec = network_inputs("paper", rec.mean, rec.temp_c, k)
+        x_raw = network_inputs("paper", y, temp, k)
+        # Exact: samples at their record's input give the very same network (least squares and GCV).
+        same = train_rbf(x_rec[lab], truth[:, k] - y[:, k], widths=widths, candidates=x_rec,
+                         in_offset=net.in_offset, in_scale=net.in_scale)
+        assert same.n_centres == net.n_centres and same.width.tolist() == net.width.tolist()
+        assert np.allclose(same.predict(x_rec, precise=True), net.predict(x_rec, precise=True), rtol=0, atol=1e-9)
+        # Raw inputs (each sample's own noisy reading and temperature):
+        raw_net = train_rbf(x_raw, truth[:, k] - y[:, k], widths=widths, candidates=x_rec,
+                            in_offset=net.in_offset, in_scale=net.in_scale)
+        # Same model choices ...
+        assert raw_net.width.tolist() == net.width.tolist()
+        assert abs(raw_net.n_centres - net.n_centres) <= max(2, 0.2 * net.n_centres)
+        # ... and the same function where the data are: the networks differ by far less than
+        # the correction they make, and compensate the raw samples equally well.
+        p_rec, p_raw = net.predict(x_raw, precise=True), raw_net.predict(x_raw, precise=True)
+        target = truth[:, k] - y[:, k]
+        scale = np.sqrt(np.mean(target ** 2))
+        assert np.sqrt(np.mean((p_rec - p_raw) ** 2)) < 0.02 * scale, k
+        e_rec = np.sqrt(np.mean((target - p_rec) ** 2))
+        e_raw = np.sqrt(np.mean((target - p_raw) ** 2))
+        assert e_rec == pytest.approx(e_raw, rel=0.05), (k, e_rec, e_raw)
