@@ -24,7 +24,7 @@ HISTORY_S = 6 * 3600.0  # how far back IMU temperatures can be asked for
 
 @dataclass
 class ImuThermalParams:
-    case_tau_s: float = 900.0  # the IMU case lags the chamber air
+    case_tau_s: float = 600.0  # the IMU case lags the chamber air (a small board on a metal plate, forced air)
     self_heat_c: float = 4.0  # die above case once warm, while powered
     self_heat_tau_s: float = 300.0
 
