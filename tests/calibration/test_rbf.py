@@ -86,7 +86,9 @@ def test_training_on_record_means_equals_training_on_raw_samples(raw_campaign):
         same = train_rbf(x_rec[lab], truth[:, k] - y[:, k], widths=widths, candidates=x_rec,
                          in_offset=net.in_offset, in_scale=net.in_scale)
         assert same.n_centres == net.n_centres and same.width.tolist() == net.width.tolist()
-        assert np.allclose(same.predict(x_rec, precise=True), net.predict(x_rec, precise=True), rtol=0, atol=1e-9)
+        p_same, p_net = same.predict(x_rec, precise=True), net.predict(x_rec, precise=True)
+        # Identical up to the GCV optimiser's convergence (its ridge factor agrees to ~1e-6): 1 ppm of the correction.
+        assert np.max(np.abs(p_same - p_net)) < 1e-6 * np.max(np.abs(p_net)), k
         # Raw inputs (each sample's own noisy reading and temperature):
         raw_net = train_rbf(x_raw, truth[:, k] - y[:, k], widths=widths, candidates=x_rec,
                             in_offset=net.in_offset, in_scale=net.in_scale)
