@@ -22,7 +22,7 @@ import serial
 from .errors import InstrumentError
 from .imu_frames import ACCEL_LSB_G, COUNTER_MODULO, GYRO_LSB_DPS, TEMP_LSB_C, FrameDecoder, unwrap_counter
 from .protocols import ImuRecord, ImuSample
-from .serial_link import open_serial
+from .serial_link import close_quietly, open_serial
 
 READ_SIZE = 1 << 16
 
@@ -71,12 +71,8 @@ class SerialImu:
             self._thread.join(timeout=2)
             self._thread = None
         with self._cond:
-            if self._ser is not None:
-                try:
-                    self._ser.close()
-                except Exception:
-                    pass
-                self._ser = None
+            close_quietly(self._ser)
+            self._ser = None
 
     @property
     def corrupt(self) -> int:
@@ -93,10 +89,7 @@ class SerialImu:
     def _lose_link(self, exc: BaseException) -> None:
         with self._cond:
             if self._ser is not None:
-                try:
-                    self._ser.close()
-                except Exception:
-                    pass
+                close_quietly(self._ser)
                 self._ser = None
                 self.link_drops += 1
                 self._decoder.drop_partial()  # a new connection starts mid-stream

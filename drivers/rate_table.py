@@ -18,7 +18,7 @@ import serial
 from .errors import InstrumentError, InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
 from .protocols import Identity, TableStatus
 from .retry import Sleep, with_retry
-from .serial_link import open_serial
+from .serial_link import close_quietly, open_serial
 
 _NUMBER = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
 _PVE = re.compile(rf"^PVE ({_NUMBER})$")
@@ -63,19 +63,11 @@ class SerialRateTable:
 
     def close(self) -> None:
         with self._lock:
-            if self._ser is not None:
-                try:
-                    self._ser.close()
-                finally:
-                    self._ser = None
+            self._reset_link()
 
     def _reset_link(self) -> None:
-        if self._ser is not None:
-            try:
-                self._ser.close()
-            except Exception:
-                pass
-            self._ser = None
+        close_quietly(self._ser)
+        self._ser = None
 
     def query(self, command: str, expect: re.Pattern[str] | None = None) -> re.Match[str]:
         """Send one command and return its reply matched against `expect` (any line by default).

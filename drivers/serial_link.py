@@ -14,3 +14,12 @@ def open_serial(url: str, *, baudrate: int, timeout_s: float, instrument: str) -
                                      bytesize=8, parity="N", stopbits=1)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise InstrumentTimeout(instrument, url, f"cannot open serial line: {exc}") from None
+
+
+def close_quietly(ser: serial.SerialBase | None) -> None:
+    """Close a port that may already be broken; nothing it raises matters any more."""
+    if ser is not None:
+        try:
+            ser.close()
+        except Exception:
+            pass

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -19,19 +18,9 @@ def fit_and_store(store: Store, campaign_id: int, fit_cfg: Any, out_dir: str | P
     options = FitOptions(poly_order=fit_cfg.polynomial_order, rbf_variants=FitOptions().rbf_variants if fit_cfg.rbf else (),
                          rbf_export=FitOptions().rbf_export if fit_cfg.rbf else "")
     result = fit_campaign(data.frame, options, provenance=data.provenance)
-    payload = json.loads(json.dumps(result.to_dict(), allow_nan=False, default=_jsonable))
-    store.save_fit(campaign_id, payload, result.provenance)
+    store.save_fit(campaign_id, result.to_dict(), result.provenance)
     text = summary_markdown(result)
     if out_dir is not None:
         write_outputs(result, Path(out_dir), text)
     return text
 
-
-def _jsonable(o: Any) -> Any:
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

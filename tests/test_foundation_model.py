@@ -13,7 +13,7 @@ from sims.table_plant import TablePlant
 
 def _loop(a, b, y0):
     out, y = [], y0
-    for ak, bk in zip(a, b):
+    for ak, bk in zip(a, b, strict=True):
         y = ak * y + bk
         out.append(y)
     return np.array(out)

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json != "-":
         print(text)
     if args.json:
-        payload = json.dumps(result.to_dict(), indent=1, allow_nan=False, default=_jsonable)
+        payload = json.dumps(result.to_dict(), indent=1, allow_nan=False)
         if args.json == "-":
             sys.stdout.write(payload + "\n")
         else:
@@ -103,12 +103,3 @@ def write_outputs(result: FitResult, out: Path, summary: str | None = None) -> l
     (out / "evaluation.csv").write_text(evaluation_csv(result))
     return written + ["imu_calibration.h", "summary.md", "evaluation.csv"]
 
-
-def _jsonable(o: Any) -> Any:
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

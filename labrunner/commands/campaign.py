@@ -186,7 +186,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     procedure = load_procedure(args.procedure)
     sim_dict: dict[str, Any] | None = None
     if args.sim:
-        sim_dict = _sim_config_dict(args.sim_config)
+        from labrunner.commands.sim import sim_config_dict
+
+        sim_dict = sim_config_dict(args.sim_config)
         if args.seed is not None:
             sim_dict["seed"] = args.seed
         if args.faults:
@@ -223,23 +225,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         return _execute(runner, args.quiet, args.db)
     finally:
         store.close()
-
-
-def _sim_config_dict(path: Path | None) -> dict[str, Any]:
-    if path is None:
-        return {}
-    from labrunner.yaml_config import ConfigError, load_yaml
-
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError([f"{path}: cannot read: {exc}"]) from None
-    data, _ = load_yaml(text, str(path))
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError([f"{path}:1: a sim configuration must be a mapping"])
-    return data
 
 
 def _has_fault_plan(sim_dict: dict[str, Any] | None) -> bool:

@@ -40,27 +40,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     sim.set_defaults(func=lambda args: (sim.print_help(), 2)[1])
 
 
-def load_sim_config(path: Path | None) -> Any:
+def sim_config_dict(path: Path | None) -> dict[str, Any]:
+    """Read and validate a sim configuration file; returns its mapping (stored with dry-run campaigns)."""
+    from labrunner.fault_plan import Fault
     from sims.world import SimLabConfig
 
     if path is None:
-        return SimLabConfig()
+        return {}
     try:
         text = path.read_text(encoding="utf-8")
-    except OSError as exc:
+    except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError([f"{path}: cannot read: {exc}"]) from None
-    data, _ = load_yaml(text, str(path))
+    data, positions = load_yaml(text, str(path))
     if data is None:
-        data = {}
+        return {}
     if not isinstance(data, dict):
         raise ConfigError([f"{path}:1: a sim configuration must be a mapping"])
     try:
-        config = SimLabConfig.from_dict(data)
+        SimLabConfig.from_dict(data)
         faults = data.get("faults") or {}
         if not isinstance(faults, dict):
             raise ValueError("faults must be a mapping")
-        from labrunner.fault_plan import Fault
-
         for key in ("schedule", "random"):
             items = faults.get(key) or []
             if not isinstance(items, list):
@@ -72,9 +72,16 @@ def load_sim_config(path: Path | None) -> Any:
                     Fault(**item)
                 except TypeError as exc:
                     raise ValueError(f"faults.{key}[{i}]: {exc}") from None
-        return config
     except (ValueError, TypeError, OSError) as exc:
-        raise ConfigError([f"{path}: {exc}"]) from None
+        line = positions.get(("faults",), 1) if "fault" in str(exc) else 1
+        raise ConfigError([f"{path}:{line}: {exc}"]) from None
+    return data
+
+
+def load_sim_config(path: Path | None) -> Any:
+    from sims.world import SimLabConfig
+
+    return SimLabConfig.from_dict(sim_config_dict(path))
 
 
 def serve_command(args: argparse.Namespace) -> int:
