@@ -41,6 +41,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
     p.add_argument("--seed", type=int, default=0, help="seed of the random held-out split")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--no-store", action="store_true",
+                   help="with a database: do not store this fit in it (stored by default, with its provenance)")
     p.set_defaults(func=run)
 
 
@@ -71,6 +73,12 @@ def run(args: argparse.Namespace) -> int:
     progress(f"loading {args.data}")
     data = load_campaign_data(args.data, args.campaign) if args.campaign is not None else load_campaign_data(args.data)
     result = fit_campaign(data.frame, options, provenance=data.provenance, progress=progress)
+    if data.provenance.get("kind") == "store" and not args.no_store:
+        from labrunner.store import Store
+
+        with Store.open_existing(args.data) as store:
+            fit_id = store.save_fit(int(data.provenance["campaign_id"]), result.to_dict(), result.provenance)
+        progress(f"fit {fit_id} stored in {args.data} (campaign {data.provenance['campaign_id']})")
     text = summary_markdown(result)
     if args.json != "-":
         print(text)

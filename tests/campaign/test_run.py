@@ -136,3 +136,20 @@ def test_status_from_another_process_while_running(tmp_path):
     finally:
         p.send_signal(signal.SIGINT)
         p.communicate(timeout=60)
+
+
+def test_fits_are_stored_with_provenance(tmp_path, tiny):
+    import json
+
+    db = tmp_path / "t.db"
+    tiny.write_text(tiny.read_text().replace("fit: {run: false}", "fit: {run: true, rbf: false}")
+                    .replace("record_s: 4", "record_s: 6"))
+    cli("run", tiny, "--sim", "--db", db, "--quiet", check=0)
+    cli("fit", db, "--rbf", "", "--no-eval", "--quiet", check=0)  # a second fit, from the command line
+    with Store.open_existing(db) as store:
+        fits = store.fits_frame(1)
+    assert len(fits) == 2  # the campaign's own fit at its end, and the one from `labrunner fit`
+    for prov in fits.provenance.map(json.loads):
+        assert prov["campaign_id"] == 1 and prov["kind"] == "store"
+        assert len(prov["t_range_s"]) == 2 and prov["rows"] == 36 * 300
+        assert prov["software"]["version"]
