@@ -259,20 +259,34 @@ class Procedure:
     def frames_per_record(self) -> int:
         return int(round(self.model.record_s * self.model.sample_rate_hz))
 
-    def estimated_duration_s(self, ramp_c_per_min: float = 2.0) -> float:
-        """A rough lab-time estimate: records, settling, soaks and remounts."""
+    def estimated_duration_s(self, ramp_c_per_min: float = 2.0, imu_lag_s: float = 600.0) -> float:
+        """A lab-time estimate: records, settling, ramps, soaks and remounts.
+
+        A soak judged on the IMU lasts until the IMU's first-order approach (time constant
+        `imu_lag_s`, typical of a small IMU on a metal plate) spreads less than the
+        tolerance over the window: about tau * ln(window * dT / (tau * tolerance)).
+        """
         m = self.model
+        s = m.soak
         rates = m.rates.values()
         per_temp = sum(m.settle_s + m.record_s + abs(r) / 100.0 for r in rates)
+
+        def soak(step_c: float) -> float:
+            ramp = abs(step_c) / ramp_c_per_min * 60.0
+            if s.sensor != "imu":
+                return ramp + s.stable_window_s
+            follow = imu_lag_s * math.log(max(s.stable_window_s * max(abs(step_c), s.tolerance_c)
+                                              / (imu_lag_s * s.tolerance_c), 1.0))
+            return ramp + max(follow, s.stable_window_s)
+
         total = 0.0
         for oi, _ in enumerate(self.orientations()):
             prev = m.remount_c
             for temp in self.temperatures_for(oi):
-                total += abs(temp - prev) / ramp_c_per_min * 60.0 + m.soak.stable_window_s * 2.5 + per_temp
+                total += soak(temp - prev) + per_temp
                 prev = temp
-            total += m.remount_s
+            total += abs(prev - m.remount_c) / ramp_c_per_min * 60.0 + m.remount_s
         return total
-
 
 def _cross_checks(model: ProcedureModel, positions: dict[tuple[Any, ...], int], source: str) -> list[str]:
     """Checks across sections (temperatures against safety limits, rates against the rate limit)."""
