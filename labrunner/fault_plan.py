@@ -1,9 +1,11 @@
 """Faults injected into the simulated lab on a schedule, to rehearse a bad night.
 
-A fault plan is a list of faults, each at a campaign time with a kind and a duration
-(or a count). `random_fault_plan` spreads N seeded random faults over a procedure's
-expected duration; `FaultInjector` applies them to a `SimLab` as the clock passes
-their times, clears them when they end, and logs every injection as an event row.
+A fault plan is a list of faults, each with a kind and a duration (or a count), at a
+campaign time (`at_s`) or a random delay (`after_s`) after the sequencer reaches a step
+(`at_step`; it then strikes no later than the start of the next step, so every one lands
+inside the campaign). `random_fault_plan` spreads N seeded random faults over a
+procedure's steps; `FaultInjector` applies them to a `SimLab` as the campaign passes
+them, clears them when they end, and logs every injection as an event row.
 The sequencer's answer (retries, reconnects, re-recording, pause and resume) is
 logged by the sequencer itself.
 
@@ -52,56 +54,70 @@ COUNTS = {"modbus_exception": (1, 6), "modbus_busy": (1, 3), "imu_corrupt": (1, 
 
 @dataclass
 class Fault:
-    at_s: float  # campaign time
     kind: str
+    at_s: float | None = None  # campaign time, or:
+    at_step: int | None = None  # ... this long after the sequencer reaches this step
+    after_s: float = 0.0
     duration_s: float = 0.0
     count: int = 0
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"unknown fault kind {self.kind!r}; known: {', '.join(KINDS)}")
+        if (self.at_s is None) == (self.at_step is None):
+            raise ValueError(f"fault {self.kind}: give at_s (campaign time) or at_step (a step index)")
 
 
 def random_fault_plan(procedure: Any, n: int, seed: int) -> list[dict[str, Any]]:
-    """N faults of random kinds at random times over the procedure's expected duration (seeded)."""
+    """N faults of random kinds at random moments across the procedure's steps (seeded)."""
     rng = random.Random(f"faults-{seed}-{n}")
-    horizon = max(procedure.estimated_duration_s(), 3600.0)
+    last = max(len(procedure.steps()) - 2, 0)
     plan = []
     for _ in range(n):
         kind = rng.choice(RANDOM_KINDS)
         lo, hi = DURATIONS_S.get(kind, (0, 0))
         clo, chi = COUNTS.get(kind, (0, 0))
-        plan.append(asdict(Fault(at_s=round(rng.uniform(0.02, 0.98) * horizon, 1), kind=kind,
+        plan.append(asdict(Fault(kind=kind, at_step=rng.randint(0, last), after_s=round(rng.uniform(0.0, 600.0), 1),
                                  duration_s=round(rng.uniform(lo, hi), 1) if hi else 0.0,
                                  count=rng.randint(clo, chi) if chi else 0)))
-    return sorted(plan, key=lambda f: f["at_s"])
+    return sorted(plan, key=lambda f: (f["at_step"], f["after_s"]))
 
 
 class FaultInjector:
     """Applies a fault plan to a simulated lab as the (virtual) clock passes the faults' times."""
 
-    def __init__(self, sim: Any, faults: list[Fault], t_zero: float, log: Any = None) -> None:
+    def __init__(self, sim: Any, faults: list[Fault], t_zero: float, log: Any = None,
+                 progress: Any = None) -> None:
         self.sim = sim
-        self.pending = sorted(faults, key=lambda f: f.at_s)
+        self.timed = sorted((f for f in faults if f.at_s is not None), key=lambda f: f.at_s)  # type: ignore[arg-type]
+        self.by_step = sorted((f for f in faults if f.at_step is not None), key=lambda f: (f.at_step, f.after_s))
+        self.reached: dict[int, float] = {}  # step -> campaign time it was first seen in progress
         self.active: list[tuple[float, Fault]] = []  # (end campaign time, fault)
         self.t_zero = t_zero
         self.log = log  # (kind, message, detail) -> None
+        self.progress = progress  # () -> index of the step in progress (None when all are recorded)
         self.injected = 0
         self.by_kind: dict[str, int] = {}
+
+    @property
+    def pending(self) -> int:
+        return len(self.timed) + len(self.by_step)
 
     @classmethod
     def attach(cls, runner: Any, lab: Any, spec: dict[str, Any]) -> FaultInjector:
         """Wire a plan from a sim configuration's `faults` (`random` and/or `schedule` lists) to a run."""
         items = list(spec.get("schedule") or []) + list(spec.get("random") or [])
         faults = [Fault(**f) for f in items]
-        t_now = runner.t
-        faults = [f for f in faults if f.at_s >= t_now]  # a resumed campaign replays only what is still ahead
+        t_now, k_now = runner.t, runner.k
+        # A resumed campaign replays only what is still ahead of it.
+        faults = [f for f in faults if (f.at_s is not None and f.at_s >= t_now)
+                  or (f.at_step is not None and k_now is not None and f.at_step >= k_now)]
 
         def log(kind: str, message: str, detail: dict[str, Any]) -> None:
             runner.store.event(runner.cid, runner.t, kind, message, state=runner.state, step_idx=runner.k,
                                detail=detail)
 
-        inj = cls(lab.sim, faults, runner.t_zero, log)
+        inj = cls(lab.sim, faults, runner.t_zero, log, progress=lambda: runner.k)
         lab.clock.add_listener(inj.on_time)
         runner.fault_injector = inj
         return inj
@@ -112,13 +128,23 @@ class FaultInjector:
             if t >= end:
                 self.active.remove((end, fault))
                 self._clear(fault)
-        while self.pending and self.pending[0].at_s <= t:
-            fault = self.pending.pop(0)
+        due: list[Fault] = []
+        while self.timed and self.timed[0].at_s <= t:  # type: ignore[operator]
+            due.append(self.timed.pop(0))
+        k = self.progress() if self.progress else None
+        if k is not None:
+            self.reached.setdefault(k, t)
+            for f in list(self.by_step):
+                start = self.reached.get(f.at_step)  # type: ignore[arg-type]
+                if (start is not None and t >= start + f.after_s) or k > f.at_step:  # type: ignore[operator]
+                    self.by_step.remove(f)
+                    due.append(f)
+        for fault in due:
             self._apply(fault, clock_now)
             self.injected += 1
             self.by_kind[fault.kind] = self.by_kind.get(fault.kind, 0) + 1
             if fault.duration_s > 0:
-                self.active.append((fault.at_s + fault.duration_s, fault))
+                self.active.append((t + fault.duration_s, fault))
             if self.log:
                 what = f"{fault.duration_s:.0f} s" if fault.duration_s else f"x{fault.count}" if fault.count else ""
                 self.log("injected", f"fault injected: {fault.kind} {what}".rstrip(), asdict(fault))
