@@ -1,15 +1,19 @@
 """Cross-validation held out by time blocks, computed from per-fold Gram matrices.
 
-Folds are contiguous stretches of time (`segment_s` long) within each run, dealt to the
-K folds in turn, so every run and every part of the temperature profile appears in
-every fold, but a held-out stretch is never fitted by its own samples or by samples
-interleaved with it (random sampling would let slowly varying errors leak across).
+Folds are contiguous stretches of time (`segment_s` long, at most 120 s) within each run,
+dealt to the K folds in turn, so every run and every part of the temperature profile
+appears in every fold, but a held-out stretch is never fitted by its own samples or by
+samples interleaved with it (random sampling would let slowly varying errors leak across;
+the drift model handles what is slower than a stretch). Long stretches were tried first:
+holding out a whole soak of one orientation made a cubic extrapolate, and the resulting
+noise in the held-out score was larger than the parameter charge -- spurious causes won.
 
-A linear model's held-out error needs no refits over the data: with per-fold Grams
-G_f = A_f' A_f of A = [X | y], fold f's coefficients solve (G - G_f) and its held-out
-sum of squares is y_f'y_f - 2 b' X_f'y_f + b' X_f'X_f b. Adding a candidate's columns Z
-only needs the cross products with Z, so a search over a nonlinear parameter costs a
-few passes over a column, not a refit of the whole model.
+Under the drift model (drift.py) fold f's training fit is the GLS fit to the other folds
+(whitened by a filter that skips the held-out blocks), and its held-out score is
+Q_all(b_f) - Q_f(b_f): the drift-whitened residual sum of squares of all blocks minus that
+of the training blocks, i.e. -2 log p(held-out | training). Both are quadratic forms read
+off Gram matrices of [X | y], so adding a candidate's columns Z only needs cross products
+with Z: a search over a nonlinear parameter costs passes over a column, not refits.
 """
 
 from __future__ import annotations
@@ -24,39 +28,24 @@ _RIDGE = 1e-10  # relative, on the unit-diagonal Gram: pins aliased directions t
 _RANK_TOL = 1e-9
 
 
-def time_folds(blocks: Blocks, n_folds: int = 5, segment_s: float = 600.0) -> np.ndarray:
+def segment_length(blocks: Blocks, n_folds: int = 5, longest_s: float = 120.0) -> float:
+    """Hold-out stretch: at most `longest_s`, and short enough that a typical run spans every
+    fold twice -- a per-run term can only be validated if each run is also in training."""
+    starts = np.flatnonzero(blocks.new_run)
+    ends = np.append(starts[1:], len(blocks)) - 1
+    spans = blocks.t_s[ends] - blocks.t_s[starts]
+    return float(np.clip(np.median(spans) / (2 * n_folds), 30.0, longest_s))
+
+
+def time_folds(blocks: Blocks, n_folds: int = 5, segment_s: float | None = None) -> np.ndarray:
     """(M,) fold of each block: `segment_s` stretches within runs, dealt out in turn."""
+    if segment_s is None:
+        segment_s = segment_length(blocks, n_folds)
     t = blocks.t_s
     run_start = np.maximum.accumulate(np.where(blocks.new_run, np.arange(len(blocks)), 0))
     seg = np.floor((t - t[run_start]) / segment_s).astype(np.int64)
     run_rank = np.cumsum(blocks.new_run) - 1
     return ((seg + run_rank) % n_folds).astype(np.int64)
-
-
-@dataclass
-class FoldLayout:
-    """Rows grouped by fold, so per-fold products are slices."""
-
-    order: np.ndarray  # block order that groups the folds
-    bounds: np.ndarray  # (K + 1,) slice bounds in that order
-    n_folds: int
-
-    @classmethod
-    def from_folds(cls, folds: np.ndarray, n_folds: int) -> FoldLayout:
-        order = np.argsort(folds, kind="stable")
-        bounds = np.searchsorted(folds[order], np.arange(n_folds + 1))
-        return cls(order=order, bounds=bounds, n_folds=n_folds)
-
-    def sort(self, a: np.ndarray) -> np.ndarray:
-        return np.asarray(a)[self.order]
-
-    def products(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """(K, p, q): a_f' b_f for fold-sorted a (M, p) and b (M, q)."""
-        out = np.empty((self.n_folds, a.shape[1], b.shape[1]))
-        for f in range(self.n_folds):
-            s = slice(self.bounds[f], self.bounds[f + 1])
-            out[f] = a[s].T @ b[s]
-        return out
 
 
 def solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -91,8 +80,8 @@ def rank(gram: np.ndarray) -> int:
 
 @dataclass
 class CvResult:
-    sse: float  # held-out sum of squares (whitened units)
-    n: int  # held-out rows (all rows, each once)
+    sse: float  # held-out -2 log-likelihood, up to a model-independent constant (whitened units)
+    n: int  # held-out blocks (all blocks, each once)
     n_params: int  # identifiable coefficients
     betas: np.ndarray  # (K, p) coefficients of each fold's training fit
 
@@ -101,41 +90,41 @@ class CvResult:
         return self.n * float(np.log(max(self.sse, 1e-300) / self.n)) + penalty * self.n_params
 
 
-def cross_validate(fold_grams: np.ndarray, n_rows: int) -> CvResult:
-    """Held-out SSE from per-fold Grams of [X | y] (y the last column)."""
-    total = fold_grams.sum(axis=0)
-    p = total.shape[0] - 1
-    train = total[None] - fold_grams
-    betas = solve(train[:, :p, :p], train[:, :p, p])
-    xy = fold_grams[:, :p, p]
-    xx = fold_grams[:, :p, :p]
-    sse_f = fold_grams[:, p, p] - 2 * np.einsum("kp,kp->k", betas, xy) + np.einsum("kp,kpq,kq->k", betas, xx, betas)
-    return CvResult(sse=float(np.sum(np.maximum(sse_f, 0.0))), n=n_rows, n_params=rank(total[:p, :p]), betas=betas)
+def _quadratic(gram: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """Residual sum of squares y'y - 2 b'X'y + b'X'X b from Grams of [X | y] (batched)."""
+    p = gram.shape[-1] - 1
+    return (gram[..., p, p] - 2 * np.einsum("...p,...p->...", beta, gram[..., :p, p])
+            + np.einsum("...p,...pq,...q->...", beta, gram[..., :p, :p], beta))
 
 
-def full_fit(fold_grams: np.ndarray) -> tuple[np.ndarray, float]:
-    """Coefficients fitted on all rows and their in-sample SSE."""
-    total = fold_grams.sum(axis=0)
-    p = total.shape[0] - 1
-    beta = solve(total[:p, :p], total[:p, p])
-    sse = total[p, p] - 2 * beta @ total[:p, p] + beta @ total[:p, :p] @ beta
-    return beta, float(max(sse, 0.0))
+def cross_validate(full: np.ndarray, folds: np.ndarray, n_rows: int) -> CvResult:
+    """Held-out score from the Gram of [X | y] whitened by the full filter (p+1, p+1) and the
+    per-fold training Grams whitened by the fold filters (K, p+1, p+1), y the last column."""
+    p = full.shape[0] - 1
+    betas = solve(folds[:, :p, :p], folds[:, :p, p])
+    held = _quadratic(full[None], betas) - _quadratic(folds, betas)
+    return CvResult(sse=float(np.sum(np.maximum(held, 0.0))), n=n_rows, n_params=rank(full[:p, :p]), betas=betas)
 
 
-def extend_grams(base: np.ndarray, a_sorted: np.ndarray, z_sorted: np.ndarray, layout: FoldLayout) -> np.ndarray:
-    """Per-fold Grams of [X | Z | y] from those of [X | y] (a_sorted = fold-sorted [X | y])."""
-    p = base.shape[1] - 1
-    q = z_sorted.shape[1]
-    az = layout.products(a_sorted, z_sorted)  # (K, p+1, q)
-    zz = layout.products(z_sorted, z_sorted)
-    out = np.empty((base.shape[0], p + q + 1, p + q + 1))
-    out[:, :p, :p] = base[:, :p, :p]
-    out[:, :p, p + q] = base[:, :p, p]
-    out[:, p + q, :p] = base[:, p, :p]
-    out[:, p + q, p + q] = base[:, p, p]
-    out[:, :p, p:p + q] = az[:, :p]
-    out[:, p:p + q, :p] = np.swapaxes(az[:, :p], 1, 2)
-    out[:, p:p + q, p:p + q] = zz
-    out[:, p:p + q, p + q] = az[:, p]
-    out[:, p + q, p:p + q] = az[:, p]
+def full_fit(full: np.ndarray) -> tuple[np.ndarray, float]:
+    """Coefficients fitted on all rows and their in-sample SSE, from the full Gram of [X | y]."""
+    p = full.shape[0] - 1
+    beta = solve(full[:p, :p], full[:p, p])
+    return beta, float(max(_quadratic(full, beta), 0.0))
+
+
+def extend_gram(base: np.ndarray, az: np.ndarray, zz: np.ndarray) -> np.ndarray:
+    """Gram of [X | Z | y] from that of [X | y] (..., p+1, p+1), [X | y]'Z (..., p+1, q) and Z'Z."""
+    p = base.shape[-1] - 1
+    q = zz.shape[-1]
+    out = np.empty(base.shape[:-2] + (p + q + 1, p + q + 1))
+    out[..., :p, :p] = base[..., :p, :p]
+    out[..., :p, p + q] = base[..., :p, p]
+    out[..., p + q, :p] = base[..., p, :p]
+    out[..., p + q, p + q] = base[..., p, p]
+    out[..., :p, p:p + q] = az[..., :p, :]
+    out[..., p:p + q, :p] = np.swapaxes(az[..., :p, :], -1, -2)
+    out[..., p:p + q, p:p + q] = zz
+    out[..., p:p + q, p + q] = az[..., p, :]
+    out[..., p + q, p:p + q] = az[..., p, :]
     return out

@@ -7,7 +7,7 @@ rate neglected. What the analysis fits is the *error*: measured output minus ref
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -15,7 +15,9 @@ import pandas as pd
 from labrunner.campaign_csv import OUTPUT_COLUMNS, read_campaign
 from sims.imu_model import CHANNELS, UP_VECTORS, ImuInputs, orientation_index
 
-# Below this quantum a logger's temperature steps cannot fake heating/cooling reversals.
+from .temperature import dequantize, temperature_rate
+
+# Below this quantum the rounding error is negligible against the model's temperature slopes.
 _MIN_COARSE_QUANTUM_C = 0.05
 
 
@@ -26,7 +28,7 @@ class Measurements:
     t_s: np.ndarray  # (N,) s
     run: np.ndarray  # (N,) power-on counter
     orientation: np.ndarray  # (N,) index into sims.imu_model.ORIENTATIONS
-    temp_c: np.ndarray  # (N,) IMU temperature sensor
+    temp_c: np.ndarray  # (N,) IMU temperature (de-quantised when the log is coarse)
     chamber_c: np.ndarray  # (N,) chamber air, NaN when not logged
     table_rate_dps: np.ndarray  # (N,)
     force_g: np.ndarray  # (N, 3) reference specific force, body frame
@@ -35,6 +37,8 @@ class Measurements:
     output: np.ndarray  # (N, 6) measured, channel order sims.imu_model.CHANNELS
     row_dt_s: float  # typical spacing of consecutive rows within a run
     temperature_quantum_c: float | None  # the logger's temperature step, when it is coarse
+    logged_temp_c: np.ndarray | None = None  # imu_temp_c as logged, when it was de-quantised
+    _error: np.ndarray | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return int(self.t_s.size)
@@ -46,12 +50,19 @@ class Measurements:
 
     @property
     def error(self) -> np.ndarray:
-        """(N, 6) measured minus reference: what the error model has to explain."""
-        return self.output - self.reference
+        """(N, 6) measured minus reference: what the error model has to explain (computed once)."""
+        if self._error is None:
+            self._error = self.output - self.reference
+        return self._error
 
     @property
     def channels(self) -> tuple[str, ...]:
         return CHANNELS
+
+    @property
+    def remounts(self) -> np.ndarray:
+        """Rows where the orientation changes (the IMU was remounted)."""
+        return np.flatnonzero(self.orientation[1:] != self.orientation[:-1]) + 1
 
     def imu_inputs(self) -> ImuInputs:
         """The rows as inputs of `sims.imu_model.ImuModel` (to evaluate a model on this campaign)."""
@@ -73,12 +84,16 @@ class Measurements:
         table = frame["table_rate_dps"].to_numpy(dtype=float)
         temp = frame["imu_temp_c"].to_numpy(dtype=float)
         first = pd.Series(t).groupby(run).transform("min").to_numpy()
+        quantum = _quantum(temp)
+        logged = None
+        if quantum is not None:
+            logged, temp = temp, dequantize(t, temp, run, quantum, _step_time(t, temp, run, quantum))
         return cls(
             t_s=t, run=run, orientation=orient, temp_c=temp,
             chamber_c=frame["chamber_c"].to_numpy(dtype=float), table_rate_dps=table,
             force_g=up.copy(), rate_dps=up * table[:, None], t_on_s=t - first,
             output=frame.loc[:, list(OUTPUT_COLUMNS)].to_numpy(dtype=float),
-            row_dt_s=_row_spacing(t, run), temperature_quantum_c=_quantum(temp),
+            row_dt_s=_row_spacing(t, run), temperature_quantum_c=quantum, logged_temp_c=logged,
         )
 
 
@@ -102,6 +117,15 @@ def _row_spacing(t: np.ndarray, run: np.ndarray) -> float:
     return float(np.median(d)) if d.size else 1.0
 
 
+def _step_time(t: np.ndarray, temp: np.ndarray, run: np.ndarray, quantum: float) -> float:
+    """How long a typical ramp takes to cross one logger step (s)."""
+    rate = np.abs(temperature_rate(t, temp, run))
+    ramping = rate[rate > 0.1 / 60.0]
+    if ramping.size < 10:
+        return 60.0
+    return float(np.clip(quantum / np.percentile(ramping, 75), 5.0, 600.0))
+
+
 def _quantum(temp: np.ndarray) -> float | None:
     """The temperature step of a coarse logger (all values on a grid), or None."""
     values = np.unique(np.round(temp, 6))
@@ -113,7 +137,3 @@ def _quantum(temp: np.ndarray) -> float | None:
         return None
     k = values / q
     return q if np.all(np.abs(k - np.round(k)) < 1e-3) else None
-
-
-def channel_index(name: str) -> int:
-    return CHANNELS.index(name)

@@ -11,38 +11,74 @@ import numpy as np
 from sims.recursions import first_order_lag, play_state
 
 
-def backlash(x: np.ndarray, half_width: float) -> np.ndarray:
-    """Play (backlash) operator: the output follows the input only once it is more than
-    `half_width` away. With half_width = quantum / 2 it removes the back-and-forth dither
-    of a coarse temperature logger, which would otherwise look like heating/cooling reversals.
+def dequantize(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarray, quantum_c: float,
+               settle_s: float) -> np.ndarray:
+    """Best estimate of the physical temperature behind a coarsely quantised log.
+
+    A logger that rounds to `quantum_c` hides where in its step the temperature is, and
+    the error model, steep in temperature (a few mg/degC), turns that into a sawtooth of
+    structured residual that lags, drifts and branch offsets would gladly explain. But
+    where the reading changes, the temperature is crossing the boundary between the two
+    steps. Between two crossings of different boundaries it ramped through the step
+    (linear in time); after entering a step it keeps moving into it for about `settle_s`
+    (the time a ramp takes to cross one step) and, when it stays, sits on average at the
+    step's centre -- holding the boundary instead would bias every soak by half a step
+    towards where it came from, which looks exactly like hysteresis. Run by run.
     """
-    x = np.asarray(x, dtype=float)
-    out = np.empty_like(x)
-    if x.size == 0:
-        return out
-    w = float(half_width) * (1.0 + 1e-9)
-    change = np.flatnonzero(np.diff(x) != 0) + 1  # the output can only move where the input does
-    y = float(x[0])
-    values = np.empty(change.size)
-    for k, i in enumerate(change):
-        xi = x[i]
-        if xi > y + w:
-            y = xi - w
-        elif xi < y - w:
-            y = xi + w
-        values[k] = y
-    out[:] = x[0]
-    if change.size:
-        seg = np.searchsorted(change, np.arange(x.size), side="right") - 1
-        has = seg >= 0
-        out[has] = values[seg[has]]
+    t_s = np.asarray(t_s, dtype=float)
+    temp = np.asarray(temp_c, dtype=float)
+    out = temp.copy()
+    bounds = np.flatnonzero(np.diff(run) != 0) + 1
+    for s, e in zip(np.r_[0, bounds], np.r_[bounds, temp.size]):
+        out[s:e] = _dequantize_run(t_s[s:e], temp[s:e], settle_s)
     return out
 
 
-def branch_state(temp_c: np.ndarray, travel_c: float, quantum_c: float | None) -> np.ndarray:
-    """Hysteresis branch state in [-1, 1] (+1 after heating), as `sims` computes it."""
-    temp = temp_c if quantum_c is None else backlash(temp_c, 0.5 * quantum_c)
-    return play_state(temp, travel_c)
+def _dequantize_run(t: np.ndarray, level: np.ndarray, settle_s: float) -> np.ndarray:
+    change = np.flatnonzero(np.diff(level) != 0) + 1
+    if change.size == 0:
+        return level.copy()
+    anchor_t = 0.5 * (t[change - 1] + t[change])
+    anchor_v = 0.5 * (level[change - 1] + level[change])
+    plateau = np.searchsorted(change, np.arange(t.size), side="right")  # 0 .. len(change)
+    has_in = plateau > 0
+    has_out = plateau < change.size
+    t1 = np.where(has_in, anchor_t[np.maximum(plateau - 1, 0)], -np.inf)
+    v1 = np.where(has_in, anchor_v[np.maximum(plateau - 1, 0)], level)
+    t2 = np.where(has_out, anchor_t[np.minimum(plateau, change.size - 1)], np.inf)
+    v2 = np.where(has_out, anchor_v[np.minimum(plateau, change.size - 1)], level)
+    through = has_in & has_out & (v1 != v2)
+    with np.errstate(invalid="ignore", over="ignore"):
+        linear = v1 + (v2 - v1) * (t - t1) / np.where(through, t2 - t1, 1.0)
+        w1 = np.where(has_in, np.exp(-np.maximum(t - t1, 0.0) / settle_s), 0.0)
+        w2 = np.where(has_out, np.exp(-np.maximum(t2 - t, 0.0) / settle_s), 0.0)
+    # Entered and left by the same boundary (or a soak at either end of the run): from the
+    # boundary towards the step's centre and back.
+    edge = np.where(w1 >= w2, v1, v2)
+    settled = level + (edge - level) * np.maximum(w1, w2)
+    return np.where(through, linear, settled)
+
+
+ROOM_C = 23.0  # where a campaign starts and where the IMU is remounted (the chamber is open)
+
+
+def branch_state(temp_c: np.ndarray, travel_c: float, remounts: np.ndarray | None = None) -> np.ndarray:
+    """Hysteresis branch state in [-1, 1] (+1 after heating), as `sims` computes it.
+
+    The branch depends on the whole temperature path, also the part that was not
+    logged. A campaign starts at room temperature, and remounting the IMU in another
+    orientation means opening the chamber: at the start and before every row in
+    `remounts` (indices) the path is taken through ROOM_C. Without this, the first soak
+    of a log that starts in a soak, and every soak after a remount, would be put on the
+    branch the previous orientation ended on.
+    """
+    temp = np.asarray(temp_c, dtype=float)
+    if temp.size == 0:
+        return np.empty(0)
+    at = np.unique(np.r_[0, np.asarray(remounts if remounts is not None else [], dtype=np.int64)])
+    path = np.insert(temp, at, ROOM_C)
+    h = play_state(path, travel_c)
+    return np.delete(h, at + np.arange(at.size))
 
 
 def element_temperature(t_s: np.ndarray, temp_c: np.ndarray, tau_s: float) -> np.ndarray:
@@ -50,9 +86,35 @@ def element_temperature(t_s: np.ndarray, temp_c: np.ndarray, tau_s: float) -> np
     return first_order_lag(t_s, temp_c, tau_s)
 
 
-def temperature_rate(t_s: np.ndarray, temp_c: np.ndarray, window_s: float = 60.0) -> np.ndarray:
-    """dT/dt in degC/s, smoothed over about `window_s` (the difference of two lagged copies)."""
-    fast = first_order_lag(t_s, temp_c, 0.25 * window_s)
-    slow = first_order_lag(t_s, temp_c, 1.25 * window_s)
-    # On a ramp of slope r the two lags differ by exactly r * (1.25 - 0.25) * window_s.
-    return (fast - slow) / window_s
+def temperature_rate(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarray, window_s: float = 60.0) -> np.ndarray:
+    """dT/dt in degC/s: the temperature change across a centred window of `window_s`.
+
+    Only over logged stretches: the window is cut at power-ons and at logging gaps (a
+    jump from one soak to the next across hours of unlogged ramp is not a rate), and a
+    row whose stretch is shorter than a few seconds gets 0.
+    """
+    t = np.asarray(t_s, dtype=float)
+    temp = np.asarray(temp_c, dtype=float)
+    out = np.zeros(t.size)
+    if t.size < 2:
+        return out
+    dt = np.diff(t)
+    positive = dt[dt > 0]
+    gap = max(10.0, 5.0 * float(np.median(positive))) if positive.size else 10.0
+    cut = np.r_[True, (np.diff(run) != 0) | (dt > gap) | (dt <= 0)]
+    seg = np.cumsum(cut) - 1
+    starts = np.flatnonzero(cut)
+    ends = np.r_[starts[1:], t.size] - 1
+    lo = np.maximum(t - 0.5 * window_s, t[starts][seg])
+    hi = np.minimum(t + 0.5 * window_s, t[ends][seg])
+    span = hi - lo
+    ok = span >= min(5.0, 0.5 * window_s)
+    bounds = np.flatnonzero(np.diff(run) != 0) + 1
+    for s, e in zip(np.r_[0, bounds], np.r_[bounds, t.size]):
+        idx = np.arange(s, e)
+        sel = idx[ok[s:e]]
+        if sel.size == 0:
+            continue
+        tt, tv = t[s:e], temp[s:e]
+        out[sel] = (np.interp(hi[sel], tt, tv) - np.interp(lo[sel], tt, tv)) / span[sel]
+    return out

@@ -1,0 +1,73 @@
+"""`labrunner diagnose DATA --json OUT [--report DIR] [--model PATH]`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from labrunner.errors import UserError
+
+from .diagnose import DiagnoseOptions, diagnose
+from .terms import CAUSE_ORDER
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "diagnose", help="find what the simulated IMU model gets wrong in measured data, and extend it",
+        description="Fit the simulator's IMU error model to a measured campaign (CSV or store), test every "
+                    "candidate cause on held-out time blocks, name the ones the data supports, write the "
+                    "extended model for the sims and the held-out gain.")
+    p.add_argument("data", help="campaign CSV or labrunner SQLite store")
+    p.add_argument("--json", required=True, dest="json_out", metavar="OUT", help="write the diagnosis JSON here")
+    p.add_argument("--report", metavar="DIR", help="also write plots, residuals.csv and summary.md here")
+    p.add_argument("--model", metavar="PATH",
+                   help="where to write the extended IMU model (default: OUT with .imu_model.json)")
+    p.add_argument("--campaign", type=int, help="campaign id inside a store holding several")
+    p.add_argument("--causes", help="comma-separated subset of causes to test (default: all): "
+                                    + ",".join(CAUSE_ORDER))
+    p.add_argument("--min-evidence", type=float, default=10.0,
+                   help="held-out evidence a cause must exceed (2 x log-likelihood, after the parameter charge)")
+    p.set_defaults(func=handler)
+
+
+def handler(args: argparse.Namespace) -> int:
+    from labrunner.data_source import load_campaign_data
+
+    json_out = Path(args.json_out)
+    model_out = Path(args.model) if args.model else json_out.with_suffix(".imu_model.json")
+    for target in (json_out, model_out):
+        if not target.parent.exists():
+            raise UserError(f"cannot write {target}: directory {target.parent} does not exist")
+    causes = tuple(c.strip() for c in args.causes.split(",") if c.strip()) if args.causes else None
+    data = load_campaign_data(args.data, args.campaign)
+    result = diagnose(data.frame, DiagnoseOptions(min_evidence=args.min_evidence, causes=causes))
+
+    result.model.save(model_out)
+    result.model_path = str(model_out)
+    payload = result.to_json()
+    payload["data"] = {k: v for k, v in data.provenance.items()}
+    try:
+        json_out.write_text(json.dumps(payload, indent=2, default=str))
+    except OSError as exc:
+        raise UserError(f"cannot write {json_out}: {exc.strerror}") from None
+    written = []
+    if args.report:
+        from .report import write_report
+
+        try:
+            written = write_report(result, args.report)
+        except OSError as exc:
+            raise UserError(f"cannot write the report to {args.report}: {exc.strerror}") from None
+    lines = [f"verdict: {result.verdict}"]
+    for f in result.findings:
+        conf = f" (confounded with {', '.join(f.confounded_with)})" if f.confounded_with else ""
+        lines.append(f"  {f.status:11s} {f.cause:26s} {', '.join(f.channels)}: held-out RMS "
+                     f"-{f.gain.improvement_pct:.1f} %{conf}")
+    lines.append(f"json: {json_out}")
+    lines.append(f"extended model: {model_out}")
+    if written:
+        lines.append(f"report: {args.report} ({len(written)} files)")
+    print("\n".join(lines), file=sys.stdout)
+    return 0

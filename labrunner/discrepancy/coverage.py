@@ -1,0 +1,179 @@
+"""What a campaign can identify: facts about its design, and the causes/channels it cannot test.
+
+A campaign without table rotation says nothing about gyro scale factors; one run says
+nothing about turn-on bias; three orientations cannot separate accelerometer bias from
+scale factor. These are decided from the design of the data (orientations, runs,
+rates, temperatures), with messages that say what is missing; anything subtler is
+caught numerically during the search (a term whose columns add nothing identifiable).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sims.imu_model import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, ORIENTATIONS, UP_VECTORS
+
+from .measurements import Measurements
+from .temperature import branch_state, temperature_rate
+
+AXES = ("x", "y", "z")
+_ROTATING_DPS = 1.0
+_RAMP_C_PER_MIN = 0.1
+_MIN_TEMPERATURE_LEVELS = 6  # a cubic has four coefficients: two spare levels to see anything else
+_MIN_BRANCH_OVERLAP_C = 5.0
+
+
+@dataclass
+class Coverage:
+    rows: int
+    runs: int
+    orientations: list[str]
+    rotating: bool
+    max_rate_dps: float
+    chamber_logged: bool
+    temperature_range_c: tuple[float, float]
+    temperature_levels: int
+    max_temperature_rate_c_per_min: float
+    branch_overlap_c: float  # temperature span reached both while heating and while cooling
+    orientation_changes_without_power_on: int
+    power_ons_within_an_orientation: int
+    temperature_quantum_c: float | None
+    not_identifiable: list[str] = field(default_factory=list)
+    excluded: dict[str, set[str]] = field(default_factory=dict)  # cause -> channels it cannot be tested on
+    notes: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "rows": self.rows, "runs": self.runs, "orientations": self.orientations,
+            "table_rotation": self.rotating, "max_rate_dps": round(self.max_rate_dps, 3),
+            "chamber_logged": self.chamber_logged,
+            "temperature_range_c": [round(v, 2) for v in self.temperature_range_c],
+            "temperature_levels": self.temperature_levels,
+            "max_temperature_rate_c_per_min": round(self.max_temperature_rate_c_per_min, 3),
+            "heating_and_cooling_overlap_c": round(self.branch_overlap_c, 2),
+            "orientation_changes_without_power_on": self.orientation_changes_without_power_on,
+            "power_ons_within_an_orientation": self.power_ons_within_an_orientation,
+            "temperature_quantum_c": self.temperature_quantum_c,
+            "notes": self.notes,
+        }
+
+
+def assess(meas: Measurements) -> Coverage:
+    present = sorted({int(i) for i in np.unique(meas.orientation)})
+    names = [ORIENTATIONS[i] for i in present]
+    rate = np.abs(meas.table_rate_dps)
+    rotating = bool(rate.max() > _ROTATING_DPS)
+    temp = meas.temp_c
+    dtdt = temperature_rate(meas.t_s, temp, meas.run) * 60.0
+    h = branch_state(temp, 1.0, meas.remounts)
+    overlap = _branch_overlap(temp[h > 0.5], temp[h < -0.5])
+    levels = _levels(temp)
+    run_change = np.flatnonzero(meas.run[1:] != meas.run[:-1]) + 1
+    orient_change = np.flatnonzero(meas.orientation[1:] != meas.orientation[:-1]) + 1
+    cov = Coverage(
+        rows=len(meas), runs=int(np.unique(meas.run).size), orientations=names, rotating=rotating,
+        max_rate_dps=float(rate.max()), chamber_logged=bool(np.isfinite(meas.chamber_c).any()),
+        temperature_range_c=(float(temp.min()), float(temp.max())), temperature_levels=levels,
+        max_temperature_rate_c_per_min=float(np.percentile(np.abs(dtdt), 99.5)), branch_overlap_c=overlap,
+        orientation_changes_without_power_on=int(np.setdiff1d(orient_change, run_change).size),
+        power_ons_within_an_orientation=int(np.setdiff1d(run_change, orient_change).size),
+        temperature_quantum_c=meas.temperature_quantum_c,
+    )
+    _judge(cov, present)
+    return cov
+
+
+def _levels(temp: np.ndarray) -> int:
+    """Distinct temperature levels: 2 degC bins holding at least 0.5 % of the rows."""
+    bins = np.floor(temp / 2.0).astype(np.int64)
+    _, counts = np.unique(bins, return_counts=True)
+    return int(np.sum(counts >= max(0.005 * temp.size, 3)))
+
+
+def _branch_overlap(heating: np.ndarray, cooling: np.ndarray) -> float:
+    if heating.size < 10 or cooling.size < 10:
+        return 0.0
+    lo = max(np.percentile(heating, 2), np.percentile(cooling, 2))
+    hi = min(np.percentile(heating, 98), np.percentile(cooling, 98))
+    return float(max(hi - lo, 0.0))
+
+
+def _exclude(cov: Coverage, cause: str, channels: tuple[str, ...] | list[str], message: str) -> None:
+    cov.excluded.setdefault(cause, set()).update(channels)
+    if message not in cov.not_identifiable:
+        cov.not_identifiable.append(message)
+
+
+def _judge(cov: Coverage, present: list[int]) -> None:
+    up = UP_VECTORS[present]  # (k, 3)
+    vertical = [bool(np.any(up[:, j] != 0)) for j in range(3)]
+    both = [bool(np.any(up[:, j] > 0) and np.any(up[:, j] < 0)) for j in range(3)]
+    static = np.column_stack([np.ones(len(present)), up])
+    rank = int(np.linalg.matrix_rank(static))
+    expected = 1 + sum(vertical)
+
+    for j, axis in enumerate(AXES):
+        if not vertical[j]:
+            cov.not_identifiable.append(
+                f"accelerometer scale factor/misalignment along {axis} (S_x{axis}, S_y{axis}, S_z{axis}): "
+                f"the {axis} axis was never vertical")
+            _exclude(cov, "scale_nonlinearity", [ACCEL_CHANNELS[j]],
+                     f"scale_nonlinearity on accel_{axis}: the {axis} axis was never vertical")
+            if cov.rotating:
+                cov.not_identifiable.append(f"gyro scale factor/misalignment about {axis}: no rotation about the "
+                                            f"{axis} axis (never vertical)")
+                _exclude(cov, "scale_nonlinearity", [GYRO_CHANNELS[j]],
+                         f"scale_nonlinearity on gyro_{axis}: no rotation about the {axis} axis")
+        elif not both[j]:
+            _exclude(cov, "scale_nonlinearity", [ACCEL_CHANNELS[j]],
+                     f"scale_nonlinearity on accel_{axis}: the {axis} axis was vertical one way only, so the "
+                     f"square of the force cannot be told from the scale factor")
+    if rank < expected:
+        cov.not_identifiable.append(
+            "accelerometer bias vs scale factor/misalignment: with orientations " + ", ".join(cov.orientations)
+            + " no axis was both up and down, so the bias is identifiable only in combination with them")
+        if len(present) > 1:
+            cov.not_identifiable.append(
+                "g_sensitivity: determined only up to a constant per gyro axis (absorbed by the gyro bias): "
+                "no axis was both up and down")
+    if not any(vertical[j] for j in range(3)) or len(present) < 2:
+        _exclude(cov, "g_sensitivity", GYRO_CHANNELS,
+                 "g_sensitivity: a single orientation, the specific force never changes")
+
+    if not cov.rotating:
+        cov.not_identifiable.append("gyro scale factor and misalignment: no table rotation in the data")
+        _exclude(cov, "scale_nonlinearity", GYRO_CHANNELS, "scale_nonlinearity (gyro): no table rotation in the data")
+        _exclude(cov, "lever_arm", ACCEL_CHANNELS, "lever_arm: no table rotation in the data")
+    if cov.runs < 2:
+        _exclude(cov, "turn_on_bias", CHANNELS, "turn_on_bias: one power-on (run) in the data")
+    if cov.max_temperature_rate_c_per_min < _RAMP_C_PER_MIN:
+        _exclude(cov, "thermal_lag", CHANNELS,
+                 f"thermal_lag: the logged temperature never changes faster than {_RAMP_C_PER_MIN} degC/min "
+                 "(no ramps logged)")
+    if cov.power_ons_within_an_orientation > 0 and cov.max_temperature_rate_c_per_min < _RAMP_C_PER_MIN:
+        _exclude(cov, "hysteresis", CHANNELS,
+                 "hysteresis: the IMU is power-cycled between soaks and the ramps are not logged, so the "
+                 "self-heating after each power-on moves the branch where the log cannot see it")
+    if cov.branch_overlap_c < _MIN_BRANCH_OVERLAP_C:
+        _exclude(cov, "hysteresis", CHANNELS,
+                 "hysteresis: no temperature range was reached both while heating and while cooling")
+    if cov.temperature_levels < 4 and cov.max_temperature_rate_c_per_min < _RAMP_C_PER_MIN:
+        cov.not_identifiable.append(
+            f"the cubic temperature dependence of biases and scale factors: {cov.temperature_levels} temperature "
+            f"level(s); only terms up to degree {max(cov.temperature_levels - 1, 0)} are determined")
+    if cov.temperature_levels < _MIN_TEMPERATURE_LEVELS:
+        _exclude(cov, "temperature_nonlinearity", CHANNELS,
+                 f"temperature_nonlinearity: {cov.temperature_levels} temperature levels; a cubic fits "
+                 f"up to four, at least {_MIN_TEMPERATURE_LEVELS} are needed")
+    if not cov.chamber_logged:
+        cov.notes.append("chamber_c is empty: no cause needs it (all errors are modelled against the IMU's own "
+                         "temperature sensor)")
+    if cov.orientation_changes_without_power_on == 0 and cov.runs > 1 and len(present) > 1:
+        cov.notes.append("every orientation change coincides with a power-on: per-orientation effects "
+                         "(g-sensitivity, accelerometer squared-force) are also explained by per-run offsets")
+    if cov.temperature_quantum_c:
+        cov.notes.append(f"imu_temp_c is quantised to {cov.temperature_quantum_c:g} degC: heating/cooling is "
+                         "judged on the de-dithered temperature")

@@ -1,0 +1,361 @@
+"""`diagnose`: fit the simulator's IMU model to measured data, find what it gets wrong, extend it.
+
+Pipeline: validate rows -> assess what the campaign can identify -> cut blocks ->
+estimate each channel's drift under the envelope model -> forward-select causes on
+held-out, drift-whitened likelihood -> fit the selected model -> extended sims model,
+held-out gains, confounded alternatives -> a `Diagnosis` (JSON, report).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from labrunner.errors import UserError
+from sims.imu_model import CHANNELS, ImuModel
+
+from .advice import separating_measurement
+from .blas import single_threaded_blas
+from .blocks import make_blocks
+from .coverage import Coverage, assess
+from .crossval import segment_length, time_folds
+from .drift import build_drift_filter
+from .engine import Engine
+from .envelope import envelope_columns
+from .extend import ChannelNoise, build_model, check_model, noise_density, row_spacing, white_rms
+from .measurements import Measurements
+from .model import BASELINE, DesignBuilder, Selected, Spec, channel_list, design_derivative, replace, without
+from .residuals import residual_table
+from .selection import Evaluation, Searcher, SelectionResult
+from .terms import CAUSE_ORDER, TermContext, TermFit, candidate_terms
+
+_MIN_BLOCKS = 40
+_DRIFT_EVIDENCE = 10.0
+
+
+@dataclass
+class DiagnoseOptions:
+    n_folds: int = 5
+    min_evidence: float = 10.0  # penalised held-out 2*delta-log-likelihood a cause must exceed
+    confound_margin: float = 10.0  # an alternative within this much of the selected cause is confounded
+    min_rms_gain: float = 0.001  # and it must lower a channel's held-out raw RMS by this fraction (0.1 %)
+    max_causes: int = 5
+    block_s: float | None = None  # None: chosen from the data size
+    causes: tuple[str, ...] | None = None  # restrict the candidates (default: all)
+
+
+@dataclass
+class Gain:
+    heldout_rms_before: dict[str, float]
+    heldout_rms_after: dict[str, float]
+
+    @property
+    def improvement_by_channel(self) -> dict[str, float]:
+        return {c: 100.0 * (1.0 - self.heldout_rms_after[c] / b) if b > 0 else 0.0
+                for c, b in self.heldout_rms_before.items()}
+
+    @property
+    def improvement_pct(self) -> float:
+        """Mean over the channels of the per-channel held-out RMS reduction, in percent."""
+        values = list(self.improvement_by_channel.values())
+        return float(np.mean(values)) if values else 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        return {"heldout_rms_before": _round(self.heldout_rms_before), "heldout_rms_after": _round(self.heldout_rms_after),
+                "improvement_pct": round(self.improvement_pct, 2),
+                "improvement_pct_by_channel": {c: round(v, 2) for c, v in self.improvement_by_channel.items()}}
+
+
+@dataclass
+class Finding:
+    cause: str
+    channels: list[str]
+    parameters: dict[str, Any]
+    gain: Gain
+    evidence_score: float  # penalised held-out evidence (2 delta log-likelihood), > min_evidence to be selected
+    status: str  # "selected" or "alternative" (explains the data as well as a selected, confounded cause)
+    confounded_with: list[str] = field(default_factory=list)
+    evidence: str = ""
+    effect: dict[str, Any] = field(default_factory=dict)  # the sims effect reproducing it
+
+    def to_json(self) -> dict[str, Any]:
+        return {"cause": self.cause, "channels": self.channels, "parameters": _round(self.parameters),
+                "gain": self.gain.to_json(), "confounded_with": self.confounded_with, "evidence": self.evidence,
+                "status": self.status, "evidence_score": round(self.evidence_score, 1)}
+
+
+@dataclass
+class Diagnosis:
+    verdict: str
+    findings: list[Finding]
+    not_identifiable: list[str]
+    gain: Gain  # baseline against the extended model, every channel
+    noise: dict[str, ChannelNoise]
+    coverage: Coverage
+    candidates: list[dict[str, Any]]
+    model: ImuModel
+    model_check: dict[str, dict[str, float]]  # RMS of measured minus model, baseline and extended
+    residuals: pd.DataFrame
+    method: dict[str, Any]
+    seconds: float
+    model_path: str | None = None
+
+    @property
+    def selected(self) -> list[Finding]:
+        return [f for f in self.findings if f.status == "selected"]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "verdict": self.verdict,
+            "findings": [f.to_json() for f in self.findings],
+            "not_identifiable": self.not_identifiable,
+            "gain": self.gain.to_json(),
+            "extended_model": {
+                "path": self.model_path,
+                "effects": sorted(self.model.effects),
+                "residual_rms": {k: _round(v) for k, v in self.model_check.items()},
+            },
+            "noise": {c: {"white_rms": _sig(n.white_rms), "noise_density": _sig(n.noise_density),
+                          "drift_per_sqrt_s": _sig(n.drift_per_sqrt_s), "drift_evidence": round(n.drift_evidence, 1)}
+                      for c, n in self.noise.items()},
+            "coverage": self.coverage.to_json(),
+            "candidates": self.candidates,
+            "method": self.method,
+            "seconds": round(self.seconds, 2),
+        }
+
+
+def diagnose(data: pd.DataFrame | Measurements, options: DiagnoseOptions | None = None) -> Diagnosis:
+    """Diagnose measured campaign rows (campaign-CSV columns, or prepared `Measurements`)."""
+    options = options or DiagnoseOptions()
+    started = time.perf_counter()
+    meas = data if isinstance(data, Measurements) else Measurements.from_frame(data)
+    with single_threaded_blas():
+        return _Diagnoser(meas, options).run(started)
+
+
+class _Diagnoser:
+    def __init__(self, meas: Measurements, options: DiagnoseOptions) -> None:
+        self.meas = meas
+        self.options = options
+        self.coverage = assess(meas)
+        self.blocks = make_blocks(meas, options.block_s)
+        if len(self.blocks) < _MIN_BLOCKS:
+            raise UserError(f"too little data to diagnose: {len(meas)} rows make {len(self.blocks)} blocks of "
+                            f"steady conditions; at least {_MIN_BLOCKS} are needed")
+        self.ctx = TermContext(meas, self.blocks)
+        self.terms = candidate_terms(self.ctx)
+        wanted = set(options.causes) if options.causes else set(self.terms)
+        unknown = wanted - set(self.terms)
+        if unknown:
+            raise UserError(f"unknown cause(s) {', '.join(sorted(unknown))}; expected some of {', '.join(CAUSE_ORDER)}")
+        self.allowed = {name: set(t.channels) - self.coverage.excluded.get(name, set())
+                        for name, t in self.terms.items() if name in wanted}
+        self.builder = DesignBuilder(self.ctx, self.terms)
+        err = meas.error
+        self.segment_s = segment_length(self.blocks, options.n_folds)
+        folds = time_folds(self.blocks, options.n_folds, self.segment_s)
+        self.engine = Engine(self.builder, self.blocks, self.blocks.mean(err), build_drift_filter(self.blocks),
+                             folds, options.n_folds)
+        self.searcher = Searcher(self.engine, self.terms, self.allowed, options.min_evidence, options.confound_margin,
+                                 min_rms_gain=options.min_rms_gain, floors=self._floors())
+
+    def _drift(self, spec: Spec, envelope: dict[str, np.ndarray]) -> dict[str, int]:
+        """Drift strength per channel with the selected causes switched on for every channel they
+        could affect (a cause found on one channel may be hiding, as drift, on another). Per-run
+        offsets do not enter: the drift filter restarts at every power-on."""
+        wide = tuple(Selected(s.term, s.theta, frozenset(self.allowed.get(s.term, s.channels))) for s in spec)
+        return {c: self.engine.estimate_rho(wide, c, envelope[c]) for c in CHANNELS}
+
+    def _floors(self) -> dict[str, float]:
+        """Per channel, the peak-to-peak effect a coarse temperature log can fake: half a logger
+        step times the channel's (fitted, RMS) temperature slope. De-quantised, the log is off
+        by a fraction of a step that depends on how each soak was approached and on how fast
+        the temperature rose after a power-on -- fake branch offsets, transients, offsets."""
+        q = self.meas.temperature_quantum_c
+        if not q:
+            return {}
+        floors = {}
+        n = self.blocks.count.astype(float)
+        w = np.sqrt(n)[:, None]
+        for i, c in enumerate(CHANNELS):
+            x = self.builder.baseline(c, None)
+            coef = np.linalg.lstsq(x * w, self.engine.y[:, i] * w[:, 0], rcond=None)[0]
+            ref = self.meas.force_g if i < 3 else self.meas.rate_dps
+            slope = design_derivative(self.meas.temp_c, ref) @ coef
+            floors[c] = 0.5 * q * float(np.sqrt(np.mean(slope * slope)))
+        return floors
+
+    def run(self, started: float) -> Diagnosis:
+        eng = self.engine
+        envelope = envelope_columns(self.builder, eng.y)
+        rho_select = {c: eng.estimate_rho((), c, envelope[c]) for c in CHANNELS}
+        result = self.searcher.run(rho_select, self.options.max_causes, lambda s: self._drift(s, envelope))
+        spec = result.spec
+        rho = result.rho  # the drift strength the causes were judged at
+        systems = {c: eng.system(spec, c, rho[c]) for c in CHANNELS}
+        base_systems = {c: eng.system((), c, rho[c]) for c in CHANNELS}
+
+        findings = self._findings(result, spec, rho, systems)
+        noise = self._noise(spec)
+        coefficients = {c: eng.coefficients(spec, systems[c])[0][systems[c].slices[BASELINE]] for c in CHANNELS}
+        effects = {f.cause: f.effect for f in findings if f.status == "selected"}
+        walk = {c: n.drift_per_sqrt_s for c, n in noise.items() if n.drift_evidence > _DRIFT_EVIDENCE}
+        if walk:
+            effects["bias_random_walk"] = {"sigma_per_sqrt_s": walk}
+        model = build_model(coefficients, effects, noise)
+        base_coef = {c: eng.coefficients((), base_systems[c])[0] for c in CHANNELS}
+        baseline_model = build_model(base_coef, {}, noise)
+
+        gain = Gain({c: eng.heldout_rms((), base_systems[c]) for c in CHANNELS},
+                    {c: eng.heldout_rms(spec, systems[c]) for c in CHANNELS})
+        residuals = residual_table(self.meas, self.blocks,
+                                   np.column_stack([eng.residual((), base_systems[c]) for c in CHANNELS]),
+                                   np.column_stack([eng.residual(spec, systems[c]) for c in CHANNELS]))
+        notes = [n for n in self.ctx.resolution_notes
+                 if not (n.startswith("hysteresis travel_c") and not self.allowed.get("hysteresis"))]
+        not_identifiable = list(self.coverage.not_identifiable) + notes + self._aliased(result)
+        verdict = findings[0].cause if findings and findings[0].status == "selected" else "none"
+        return Diagnosis(
+            verdict=verdict, findings=findings, not_identifiable=not_identifiable, gain=gain, noise=noise,
+            coverage=self.coverage, candidates=self._candidates(result), model=model,
+            model_check={"baseline": check_model(baseline_model, self.meas), "extended": check_model(model, self.meas)},
+            residuals=residuals, method=self._method(), seconds=time.perf_counter() - started)
+
+    # -- findings ------------------------------------------------------------------------
+
+    def _fit_term(self, spec: Spec, sel: Selected, rho: dict[str, int]) -> tuple[dict[str, Any], dict[str, Any]]:
+        term = self.terms[sel.term]
+        fit = TermFit(theta=sel.params, coef={}, cov={}, schur={})
+        for c in channel_list(sel.channels):
+            system = self.engine.system(spec, c, rho[c])
+            if term.moves_baseline_temperature:
+                fit.coef[c] = np.zeros(0)
+                continue
+            part = self.engine.term_fit(spec, system, sel.term)
+            fit.coef[c], fit.cov[c], fit.schur[c] = part.coef, part.cov, part.schur
+        return term.summarize(fit, self.ctx)
+
+    def _gain(self, before: Spec, after: Spec, channels: list[str], rho: dict[str, int]) -> Gain:
+        eng = self.engine
+        return Gain({c: eng.heldout_rms(before, eng.system(before, c, rho[c])) for c in channels},
+                    {c: eng.heldout_rms(after, eng.system(after, c, rho[c])) for c in channels})
+
+    def _findings(self, result: SelectionResult, spec: Spec, rho: dict[str, int], systems: dict) -> list[Finding]:
+        findings: list[Finding] = []
+        confounds = {s.term: [c for c in result.confounds if c.selected == s.term] for s in spec}
+        for sel in spec:
+            params, effect = self._fit_term(spec, sel, rho)
+            channels = channel_list(sel.channels)
+            rest = without(spec, sel.term)
+            own = self.searcher.evaluate(rest, self.searcher.systems(rest, rho), rho, sel.term, sel.params)
+            term = self.terms[sel.term]
+            alts = confounds[sel.term]
+            evidence = (f"{term.what}. Held-out evidence {own.score:.0f} (drift-whitened 2*delta-log-likelihood on "
+                        f"time blocks held out, after a log(M) charge per parameter; > {self.options.min_evidence:g} "
+                        f"counts) on " + ", ".join(f"{c} {own.delta.get(c, 0.0):.0f}" for c in channels) + ".")
+            for alt in alts:
+                evidence += (f" The data cannot tell it from {alt.alternative.term}, which explains "
+                             f"{alt.fit_alternative:.0f} against {alt.fit_selected:.0f}: "
+                             + separating_measurement(term, self.terms[alt.alternative.term]) + ".")
+            finding = Finding(sel.term, channels, params, self._gain(rest, spec, channels, rho), own.score, "selected",
+                              [a.alternative.term for a in alts], evidence, effect)
+            findings.append(finding)
+            for alt in alts:
+                findings.append(self._alternative(spec, sel, alt.alternative, rho, alt.fit_selected,
+                                                  alt.fit_alternative))
+        return findings
+
+    def _alternative(self, spec: Spec, sel: Selected, ev: Evaluation, rho: dict[str, int], fit_a: float,
+                     fit_b: float) -> Finding:
+        rest = without(spec, sel.term)
+        alt_spec = replace(rest, ev.selected())
+        params, effect = self._fit_term(alt_spec, ev.selected(), rho)
+        channels = list(ev.channels)
+        evidence = (f"{self.terms[ev.term].what}. Explains the held-out data about as well as {sel.term} "
+                    f"({fit_b:.0f} against {fit_a:.0f}) but with more parameters or less support, so {sel.term} is "
+                    f"preferred; to separate them: " + separating_measurement(self.terms[sel.term], self.terms[ev.term])
+                    + ".")
+        return Finding(ev.term, channels, params, self._gain(rest, alt_spec, channels, rho), ev.score, "alternative",
+                       [sel.term], evidence, effect)
+
+    # -- the rest of the report ------------------------------------------------------------------
+
+    def _noise(self, spec: Spec) -> dict[str, ChannelNoise]:
+        """White noise and drift of each channel under the extended model."""
+        density = noise_density(self.meas, self.blocks)
+        spacing = row_spacing(self.meas)
+        out = {}
+        for i, c in enumerate(CHANNELS):
+            rho = self.engine.estimate_rho(spec, c)
+            _, s2 = self.engine.coefficients(spec, self.engine.system(spec, c, rho))
+            evidence = self.engine.drift_evidence(spec, c, rho) if rho > 0 else 0.0
+            out[c] = ChannelNoise(white_rms=white_rms(float(density[i]), spacing),
+                                  noise_density=float(density[i]),
+                                  drift_per_sqrt_s=self.engine.drift.drift_per_sqrt_s(rho, s2),
+                                  drift_evidence=float(evidence))
+        return out
+
+    def _aliased(self, result: SelectionResult) -> list[str]:
+        """Causes the numerical check found indistinguishable from the baseline on some channels."""
+        seen: dict[str, set[str]] = {}
+        for step in result.steps[:1]:
+            for ev in step.evaluations:
+                if ev.aliased:
+                    seen.setdefault(ev.term, set()).update(ev.aliased)
+        return [f"{t} on {', '.join(channel_list(chs))}: indistinguishable from the baseline model in this data"
+                for t, chs in seen.items()]
+
+    def _candidates(self, result: SelectionResult) -> list[dict[str, Any]]:
+        first = {ev.term: ev for ev in result.steps[0].evaluations} if result.steps else {}
+        last = {ev.term: ev for ev in result.steps[-1].evaluations} if result.steps else {}
+        selected = {s.term for s in result.spec}
+        out = []
+        for name in CAUSE_ORDER:
+            if name not in self.terms:
+                continue
+            entry: dict[str, Any] = {"cause": name, "tested_on": channel_list(self.allowed.get(name, set())),
+                                     "selected": name in selected}
+            if name in first:
+                entry["evidence_vs_baseline"] = _finite(first[name].score)
+                entry["best_parameters_vs_baseline"] = _round(first[name].theta)
+            if name in last and name not in selected:
+                entry["evidence_given_selected"] = _finite(last[name].score)
+            out.append(entry)
+        return out
+
+    def _method(self) -> dict[str, Any]:
+        return {
+            "criterion": "held-out (time-block cross-validated) -2 log-likelihood of drift-whitened residuals "
+                         "+ log(M) per identifiable coefficient; a cause must improve it by more than min_evidence",
+            "folds": self.options.n_folds, "holdout_segment_s": round(self.segment_s, 1),
+            "blocks": len(self.blocks), "block_s": round(self.blocks.block_s, 2),
+            "penalty_per_parameter": round(self.engine.penalty, 3), "min_evidence": self.options.min_evidence,
+            "confound_margin": self.options.confound_margin,
+        }
+
+
+def _sig(v: float, digits: int = 6) -> float:
+    if v is None or not np.isfinite(v):
+        return None  # type: ignore[return-value]
+    return float(f"{v:.{digits}g}")
+
+
+def _round(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _round(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_round(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return _sig(float(value))
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def _finite(v: float) -> float | None:
+    return round(float(v), 1) if np.isfinite(v) else None

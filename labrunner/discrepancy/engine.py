@@ -1,0 +1,246 @@
+"""Fitting a specification to one channel: drift-whitened GLS, blocked CV, held-out RMS.
+
+Everything the selection compares goes through here: a `ChannelSystem` is one channel's
+design and error whitened by the full drift filter and by each fold's filter, with their
+Gram matrices, so candidates can be tried by adding columns (`try_columns`) without
+refitting the rest. Whitened design parts are cached: the channels of a triad, the steps of
+the search and the trial values of a candidate's parameters share most of them.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from sims.imu_model import CHANNELS
+
+from .blocks import Blocks
+from .crossval import CvResult, cross_validate, extend_gram, full_fit, solve
+from .drift import DriftFilter, FoldFilters, Whitened
+from .model import BASELINE, DesignBuilder, Spec
+
+# Drift-strength grid points tried first when profiling the likelihood (then the best's neighbours).
+_COARSE = (0, 1, 4, 7, 10, 13, 16, 19, 22, 25)
+_DESIGN_CACHE = 64  # whitened design parts kept (each about 5 M p floats; most p are 1 to 16)
+_COLUMN_CACHE = 400  # whitened candidate columns kept (most are one column)
+
+
+@dataclass
+class ChannelSystem:
+    """One channel's design X and error y, whitened by the full filter and by each fold's filter,
+    with the Grams of [X | y] (X's whitening is shared by channels with the same design)."""
+
+    channel: str
+    rho_index: int
+    x: Whitened  # (M, p) and per fold (training blocks, p)
+    y: Whitened  # (M, 1) and per fold
+    g_full: np.ndarray  # (p+1, p+1)
+    g_fold: np.ndarray  # (K, p+1, p+1)
+    slices: dict[str, slice]
+    cv: CvResult
+
+    def cross(self, z_full: np.ndarray, z_folds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """[X | y]' z for the full and the fold-whitened data."""
+        full = np.concatenate([self.x.full.T @ z_full, self.y.full.T @ z_full])
+        folds = np.stack([np.concatenate([xf.T @ zf, yf.T @ zf])
+                          for xf, yf, zf in zip(self.x.folds, self.y.folds, z_folds)])
+        return full, folds
+
+
+class Engine:
+    def __init__(self, builder: DesignBuilder, blocks: Blocks, error_blocks: np.ndarray, drift: DriftFilter,
+                 folds: np.ndarray, n_folds: int) -> None:
+        self.builder = builder
+        self.blocks = blocks
+        self.y = error_blocks  # (M, 6) block means of measured minus reference
+        self.drift = drift
+        self.folds = folds
+        self.n_folds = n_folds
+        self.m = len(blocks)
+        self.penalty = float(np.log(self.m))
+        self._filters: dict[int, FoldFilters] = {}
+        self._xcache: OrderedDict[tuple, tuple[Whitened, np.ndarray, np.ndarray]] = OrderedDict()
+        self._ycache: dict[tuple[str, int], Whitened] = {}
+        self._zcache: OrderedDict[tuple, Whitened] = OrderedDict()
+        self._row_block = blocks.row_block()
+
+    def filters(self, rho_index: int) -> FoldFilters:
+        if rho_index not in self._filters:
+            self._filters[rho_index] = FoldFilters(self.blocks, float(self.drift.rho[rho_index]), self.folds,
+                                                   self.n_folds)
+        return self._filters[rho_index]
+
+    # -- drift strength -----------------------------------------------------------------
+
+    def loglik(self, spec: Spec, channel: str, index: int, extra: np.ndarray | None = None) -> float:
+        """Concentrated log-likelihood of the local-level GLS fit at rho[index] (extra: more columns)."""
+        x = self.builder.design(spec, channel).x
+        if extra is not None:
+            x = np.column_stack([x, extra])
+        a = self.drift.whiten(index, np.column_stack([x, self.y[:, CHANNELS.index(channel)]]))
+        g = a.T @ a
+        p = x.shape[1]
+        beta = solve(g[:p, :p], g[:p, p])
+        sse = max(float(g[p, p] - 2 * beta @ g[:p, p] + beta @ g[:p, :p] @ beta), 1e-300)
+        n = self.drift.n_informative  # the first block of each run carries nothing
+        return -0.5 * (n * np.log(sse / n) + self.drift.log_det(index))
+
+    def estimate_rho(self, spec: Spec, channel: str, extra: np.ndarray | None = None) -> int:
+        """Index of the most likely drift strength (coarse grid, then neighbours)."""
+        n = self.drift.rho.size
+        cache: dict[int, float] = {}
+
+        def ll(i: int) -> float:
+            if i not in cache:
+                cache[i] = self.loglik(spec, channel, i, extra)
+            return cache[i]
+
+        best = max((i for i in _COARSE if i < n), key=ll)
+        for i in (best - 2, best - 1, best + 1, best + 2):
+            if 0 <= i < n:
+                ll(i)
+        return max(cache, key=cache.get)
+
+    def drift_evidence(self, spec: Spec, channel: str, index: int) -> float:
+        """2 * log-likelihood ratio of drift at rho[index] against no drift."""
+        return 2.0 * (self.loglik(spec, channel, index) - self.loglik(spec, channel, 0))
+
+    # -- systems --------------------------------------------------------------------------
+
+    def system(self, spec: Spec, channel: str, rho_index: int) -> ChannelSystem:
+        """The channel's whitened design and Grams. Whitening is the expensive part, so each part
+        of the design (the baseline, each term) is whitened once per drift rate and reused across
+        channels, candidates and steps; only the cross products are formed anew."""
+        design = self.builder.design(spec, channel)
+        parts = [self._part(key, cols, rho_index) for key, cols in design.parts]
+        if (channel, rho_index) not in self._ycache:
+            self._ycache[(channel, rho_index)] = self.whiten(rho_index, self.y[:, CHANNELS.index(channel)][:, None])
+        wy = self._ycache[(channel, rho_index)]
+        pieces = [w for w, _, _ in parts] + [wy]
+        sizes = [w.full.shape[1] for w in pieces]
+        edges = np.r_[0, np.cumsum(sizes)]
+        n = int(edges[-1])
+        g_full = np.empty((n, n))
+        g_fold = np.empty((self.n_folds, n, n))
+        for i, wi in enumerate(pieces):
+            si = slice(edges[i], edges[i + 1])
+            for j in range(i, len(pieces)):
+                sj = slice(edges[j], edges[j + 1])
+                if i == j and i < len(parts):
+                    g_full[si, si], g_fold[:, si, si] = parts[i][1], parts[i][2]
+                    continue
+                wj = pieces[j]
+                g_full[si, sj] = wi.full.T @ wj.full
+                g_fold[:, si, sj] = np.stack([a.T @ b for a, b in zip(wi.folds, wj.folds)])
+                g_full[sj, si] = g_full[si, sj].T
+                g_fold[:, sj, si] = np.swapaxes(g_fold[:, si, sj], 1, 2)
+        wx = Whitened(np.concatenate([w.full for w, _, _ in parts], axis=1),
+                      [np.concatenate([w.folds[f] for w, _, _ in parts], axis=1) for f in range(self.n_folds)])
+        return ChannelSystem(channel, rho_index, wx, wy, g_full, g_fold, design.slices,
+                             cross_validate(g_full, g_fold, self.m))
+
+    def _part(self, key: tuple, cols: np.ndarray, rho_index: int) -> tuple[Whitened, np.ndarray, np.ndarray]:
+        """A design part whitened, with its own Grams (cached)."""
+        ck = (key, rho_index)
+        if ck in self._xcache:
+            self._xcache.move_to_end(ck)
+            return self._xcache[ck]
+        w = self.whiten(rho_index, cols)
+        entry = (w, w.full.T @ w.full, np.stack([f.T @ f for f in w.folds]))
+        self._xcache[ck] = entry
+        if len(self._xcache) > _DESIGN_CACHE:
+            self._xcache.popitem(last=False)
+        return entry
+
+    def whiten(self, rho_index: int, z: np.ndarray) -> Whitened:
+        return self.filters(rho_index).whiten(z)
+
+    def whiten_cached(self, key: tuple, rho_index: int, z: np.ndarray) -> Whitened:
+        """Whitened candidate columns, kept for the next step (key identifies z)."""
+        ck = (key, rho_index)
+        if ck in self._zcache:
+            self._zcache.move_to_end(ck)
+            return self._zcache[ck]
+        w = self.whiten(rho_index, z)
+        self._zcache[ck] = w
+        if len(self._zcache) > _COLUMN_CACHE:
+            self._zcache.popitem(last=False)
+        return w
+
+    def try_columns(self, system: ChannelSystem, z: np.ndarray | Whitened) -> CvResult:
+        """CV of the system with extra block-level columns z (M, q), or z already whitened at its rho."""
+        w = z if isinstance(z, Whitened) else self.whiten(system.rho_index, z)
+        az_full, az_fold = system.cross(w.full, w.folds)
+        g_full = extend_gram(system.g_full, az_full, w.full.T @ w.full)
+        zz = np.stack([zf.T @ zf for zf in w.folds])
+        return cross_validate(g_full, extend_gram(system.g_fold, az_fold, zz), self.m)
+
+    # -- fitted quantities -------------------------------------------------------------------
+
+    def coefficients(self, spec: Spec, system: ChannelSystem) -> tuple[np.ndarray, float]:
+        """Coefficients fitted on all blocks, and the per-row white-noise variance estimate.
+
+        The drift's diffuse start leaves the constant (the bias c0, the baseline's first
+        column) to the drift level; it is put back as the mean raw residual.
+        """
+        beta, sse = full_fit(system.g_full)
+        x = self.builder.design(spec, system.channel).x
+        n = self.blocks.count.astype(float)
+        resid = self.y[:, CHANNELS.index(system.channel)] - x @ beta
+        beta = beta.copy()
+        beta[system.slices[BASELINE].start] += float(np.sum(n * resid) / np.sum(n))
+        dof = max(self.m - 1 - system.cv.n_params, 1)
+        return beta, sse / dof
+
+    def term_fit(self, spec: Spec, system: ChannelSystem, term: str) -> TermFitPart:
+        """A term's coefficients in the full fit, their covariance and the term's Schur complement."""
+        beta, s2 = self.coefficients(spec, system)
+        sl = system.slices[term]
+        g = system.g_full[:-1, :-1]
+        idx = np.arange(g.shape[0])
+        rest = np.setdiff1d(idx, idx[sl])
+        gzr = g[sl][:, rest]
+        schur = g[sl, sl] - gzr @ solve_many(g[np.ix_(rest, rest)], gzr.T)
+        schur = 0.5 * (schur + schur.T)
+        cov = s2 * np.linalg.pinv(schur, hermitian=True, rcond=1e-10)
+        return TermFitPart(beta[sl], cov, schur)
+
+    def residual(self, spec: Spec, system: ChannelSystem) -> np.ndarray:
+        """(M,) block-mean residual (measured minus fitted model) of the full fit."""
+        beta, _ = self.coefficients(spec, system)
+        return self.y[:, CHANNELS.index(system.channel)] - self.builder.design(spec, system.channel).x @ beta
+
+    def heldout_rms(self, spec: Spec, system: ChannelSystem) -> float:
+        """Held-out RMS over the raw rows of measured minus model: each row predicted by the GLS
+        fit on the other folds (its constant from their raw residual mean)."""
+        c = CHANNELS.index(system.channel)
+        x = self.builder.design(spec, system.channel).x
+        n = self.blocks.count.astype(float)
+        betas = system.cv.betas
+        resid = self.y[:, c][:, None] - x @ betas.T  # (M, K) block-level raw residual of each fold's fit
+        weighted = (n[:, None] * resid)
+        shift = np.empty(self.n_folds)
+        for k in range(self.n_folds):
+            train = self.folds != k
+            shift[k] = weighted[train, k].sum() / n[train].sum()
+        pred = self.builder.predict_rows(spec, system.channel, betas, system.slices)  # (N, K)
+        fold = self.folds[self._row_block]
+        r = self.builder.ctx.meas.error[:, c] - pred[np.arange(pred.shape[0]), fold] - shift[fold]
+        return float(np.sqrt(np.mean(r * r)))
+
+
+@dataclass
+class TermFitPart:
+    coef: np.ndarray
+    cov: np.ndarray
+    schur: np.ndarray
+
+
+def solve_many(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """gram^-1 rhs for a (p, q) right-hand side."""
+    if rhs.size == 0:
+        return np.zeros_like(rhs)
+    q = rhs.shape[1]
+    return solve(np.broadcast_to(gram, (q,) + gram.shape), rhs.T).T
