@@ -29,8 +29,12 @@ def is_sqlite(path: str | Path) -> bool:
         return False
 
 
-def load_campaign_data(path: str | Path, campaign: int | None = None) -> CampaignData:
-    """Load a campaign CSV or a store database (its one campaign, or `campaign`)."""
+def load_campaign_data(path: str | Path, campaign: int | None = None, *, include_monitor: bool = False) -> CampaignData:
+    """Load a campaign CSV or a store database (its latest campaign, or `campaign`).
+
+    From a store, `include_monitor` adds the 1 s monitor rows logged while ramping and soaking
+    (what a diagnosis of thermal lag or hysteresis needs); a fit uses the record steps only.
+    """
     p = Path(path)
     if not p.exists():
         raise CampaignDataError(str(p), "file not found")
@@ -38,6 +42,6 @@ def load_campaign_data(path: str | Path, campaign: int | None = None) -> Campaig
         from labrunner.store import Store
 
         with Store.open_existing(p) as store:
-            return store.campaign_data(campaign)
+            return store.campaign_data(campaign, include_monitor=include_monitor)
     frame = read_campaign(p)
     return CampaignData(frame=frame, provenance={"source": str(p.resolve()), "kind": "csv", "rows": len(frame)})

@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
     progress(f"loading {args.data}")
-    data = load_campaign_data(args.data, args.campaign) if args.campaign is not None else load_campaign_data(args.data)
+    data = load_campaign_data(args.data, args.campaign)
     result = fit_campaign(data.frame, options, provenance=data.provenance, progress=progress)
     if data.provenance.get("kind") == "store" and not args.no_store:
         from labrunner.store import Store

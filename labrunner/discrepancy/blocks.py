@@ -26,6 +26,7 @@ class Blocks:
 
     start: np.ndarray  # (M,) first row
     count: np.ndarray  # (M,) rows
+    weight: np.ndarray  # (M,) information: the sum of its rows' weights (= count when rows are alike)
     t_s: np.ndarray  # (M,) mean time
     run: np.ndarray  # (M,) run of the block
     new_run: np.ndarray  # (M,) bool: first block of a run
@@ -35,14 +36,17 @@ class Blocks:
     def __len__(self) -> int:
         return int(self.start.size)
 
+    row_weight: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+
     def mean(self, values: np.ndarray) -> np.ndarray:
-        """Block means of row values, (N,) -> (M,) or (N, k) -> (M, k)."""
+        """Block means of row values weighted by the rows' information, (N,) -> (M,) or (N, k) -> (M, k)."""
         if self._averager is None:
             # A sparse averaging matrix: one pass over the rows, much faster than
             # np.add.reduceat along axis 0 of a 2-D array.
             n = int(self.count.sum())
+            rw = self.row_weight if self.row_weight.size == n else np.ones(n)
             self._averager = sparse.csr_matrix(
-                (np.repeat(1.0 / self.count, self.count), (self.row_block(), np.arange(n))), shape=(len(self), n))
+                (rw / np.repeat(self.weight, self.count), (self.row_block(), np.arange(n))), shape=(len(self), n))
         return np.asarray(self._averager @ np.asarray(values, dtype=float))
 
     def row_block(self) -> np.ndarray:
@@ -56,7 +60,8 @@ def make_blocks(meas: Measurements, block_s: float | None = None, temp_step_c: f
     n = len(meas)
     t = meas.t_s
     dt = np.diff(t)
-    gap_limit = max(3.0 * meas.row_dt_s, meas.row_dt_s + 0.5)
+    spacing = np.maximum(meas.row_spacing_s[1:], meas.row_spacing_s[:-1])  # each kind of row its own gap
+    gap_limit = np.maximum(3.0 * spacing, spacing + 0.5)
     rate = meas.table_rate_dps
     rate_tol = 0.05 + 1e-3 * np.abs(rate[1:])
     hard = np.zeros(n, dtype=bool)
@@ -81,8 +86,9 @@ def make_blocks(meas: Measurements, block_s: float | None = None, temp_step_c: f
     new[1:] |= (t_bin[1:] != t_bin[:-1]) | (travel_bin[1:] != travel_bin[:-1])
     start = np.flatnonzero(new)
     count = np.diff(np.append(start, n))
-    blocks = Blocks(start=start, count=count, t_s=np.empty(0), run=meas.run[start],
-                    new_run=np.ones(start.size, dtype=bool), block_s=block_s)
+    weight = np.add.reduceat(meas.row_weight, start) if n else np.zeros(0)
+    blocks = Blocks(start=start, count=count, weight=weight, t_s=np.empty(0), run=meas.run[start],
+                    new_run=np.ones(start.size, dtype=bool), block_s=block_s, row_weight=meas.row_weight)
     blocks.t_s = blocks.mean(t)
     blocks.new_run[1:] = blocks.run[1:] != blocks.run[:-1]
     return blocks

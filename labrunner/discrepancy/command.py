@@ -41,7 +41,7 @@ def handler(args: argparse.Namespace) -> int:
         if not target.parent.exists():
             raise UserError(f"cannot write {target}: directory {target.parent} does not exist")
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip()) if args.causes else None
-    data = load_campaign_data(args.data, args.campaign)
+    data = load_campaign_data(args.data, args.campaign, include_monitor=True)  # ramps and soaks too
     result = diagnose(data.frame, DiagnoseOptions(min_evidence=args.min_evidence, causes=causes))
 
     result.model.save(model_out)

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from labrunner.errors import UserError
-from sims.imu_model import CHANNELS, ImuModel
+from sims.imu_model import GYRO_CHANNELS, CHANNELS, ImuModel
 
 from .advice import separating_measurement
 from .blas import single_threaded_blas
@@ -46,6 +46,9 @@ class DiagnoseOptions:
     max_causes: int = 5
     block_s: float | None = None  # None: chosen from the data size
     causes: tuple[str, ...] | None = None  # restrict the candidates (default: all)
+    # The rate table's accuracy (relative): the logged reference rate may be off by this much per
+    # record, so a gyro term growing with the rate must exceed it (the paper's table: +-0.01 %).
+    rate_accuracy: float = 1e-4
 
 
 @dataclass
@@ -162,7 +165,8 @@ class _Diagnoser:
         self.engine = Engine(self.builder, self.blocks, self.blocks.mean(err), build_drift_filter(self.blocks),
                              folds, options.n_folds)
         self.searcher = Searcher(self.engine, self.terms, self.allowed, options.min_evidence, options.confound_margin,
-                                 min_rms_gain=options.min_rms_gain, floors=self._floors())
+                                 min_rms_gain=options.min_rms_gain, floors=self._floors(),
+                                 term_floors=self._rate_floors(options.rate_accuracy))
 
     def _drift(self, spec: Spec, envelope: dict[str, np.ndarray]) -> dict[str, int]:
         """Drift strength per channel with the selected causes switched on for every channel they
@@ -170,6 +174,12 @@ class _Diagnoser:
         offsets do not enter: the drift filter restarts at every power-on."""
         wide = tuple(Selected(s.term, s.theta, frozenset(self.allowed.get(s.term, s.channels))) for s in spec)
         return {c: self.engine.estimate_rho(wide, c, envelope[c]) for c in CHANNELS}
+
+    def _rate_floors(self, accuracy: float) -> dict[tuple[str, str], float]:
+        """A gyro's squared-rate term smaller than the table's rate accuracy at the highest rate
+        cannot be told from the reference's own error (a per-record scale error)."""
+        top = float(np.max(np.abs(self.meas.table_rate_dps))) if len(self.meas) else 0.0
+        return {("scale_nonlinearity", c): accuracy * top for c in GYRO_CHANNELS}
 
     def _floors(self) -> dict[str, float]:
         """Per channel, the peak-to-peak effect a coarse temperature log can fake: half a logger
@@ -180,7 +190,7 @@ class _Diagnoser:
         if not q:
             return {}
         floors = {}
-        n = self.blocks.count.astype(float)
+        n = self.blocks.weight.astype(float)
         w = np.sqrt(n)[:, None]
         for i, c in enumerate(CHANNELS):
             x = self.builder.baseline(c, None)

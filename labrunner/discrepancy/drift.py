@@ -150,7 +150,7 @@ class FilterBank:
 def _steps(blocks: Blocks) -> tuple[np.ndarray, np.ndarray]:
     dt = np.zeros(len(blocks))
     dt[1:] = np.abs(np.diff(blocks.t_s))
-    return dt, 1.0 / blocks.count
+    return dt, 1.0 / blocks.weight
 
 
 @dataclass
@@ -218,7 +218,7 @@ class FoldFilters:
         else:
             # Without drift the filter is weighted least squares with the constant as a regressor
             # (equivalent to the diffuse level, without the memory of a running mean).
-            self.weight = np.sqrt(blocks.count.astype(float))
+            self.weight = np.sqrt(blocks.weight.astype(float))
 
     def whiten(self, x: np.ndarray) -> Whitened:
         if self.bank is None:

@@ -187,7 +187,7 @@ class Engine:
         """
         beta, sse = full_fit(system.g_full)
         x = self.builder.design(spec, system.channel).x
-        n = self.blocks.count.astype(float)
+        n = self.blocks.weight.astype(float)
         resid = self.y[:, CHANNELS.index(system.channel)] - x @ beta
         beta = beta.copy()
         beta[system.slices[BASELINE].start] += float(np.sum(n * resid) / np.sum(n))
@@ -217,7 +217,7 @@ class Engine:
         fit on the other folds (its constant from their raw residual mean)."""
         c = CHANNELS.index(system.channel)
         x = self.builder.design(spec, system.channel).x
-        n = self.blocks.count.astype(float)
+        n = self.blocks.weight.astype(float)
         betas = system.cv.betas
         resid = self.y[:, c][:, None] - x @ betas.T  # (M, K) block-level raw residual of each fold's fit
         weighted = (n[:, None] * resid)

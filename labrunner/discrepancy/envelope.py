@@ -31,7 +31,7 @@ def envelope_columns(builder: DesignBuilder, error_blocks: np.ndarray) -> dict[s
     ctx = builder.ctx
     meas = ctx.meas
     blocks = ctx.blocks
-    w = np.sqrt(blocks.count.astype(float))
+    w = np.sqrt(blocks.weight.astype(float))
     shared = [blocks.mean(np.exp(-np.maximum(meas.t_on_s, 0.0)[:, None] / np.array(_WARMUP_TAUS)[None, :]))]
     shared.append(np.column_stack([blocks.mean(branch_state(meas.temp_c, tr, meas.remounts))
                                    for tr in _TRAVELS]))

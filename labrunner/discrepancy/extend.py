@@ -53,12 +53,7 @@ def white_rms(density: float, spacing_s: np.ndarray) -> float:
 
 def row_spacing(meas: Measurements) -> np.ndarray:
     """(N,) each row's spacing to its neighbour within the run (typical spacing where alone)."""
-    dt = np.diff(meas.t_s)
-    same = meas.run[1:] == meas.run[:-1]
-    ok = same & (dt > 0) & (dt <= 10 * meas.row_dt_s)
-    out = np.full(len(meas), meas.row_dt_s)
-    out[1:][ok] = dt[ok]
-    return out
+    return meas.row_spacing_s
 
 
 def build_model(coefficients: dict[str, np.ndarray], effects: dict[str, dict[str, Any]],

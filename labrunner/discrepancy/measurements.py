@@ -38,7 +38,19 @@ class Measurements:
     row_dt_s: float  # typical spacing of consecutive rows within a run
     temperature_quantum_c: float | None  # the logger's temperature step, when it is coarse
     logged_temp_c: np.ndarray | None = None  # imu_temp_c as logged, when it was de-quantised
+    # Rows need not be alike: a log may mix raw samples with averaged rows (a labrunner store
+    # exported with its 1 s monitor rows). Each row's weight is its information relative to
+    # the log's most common kind of row (a 1 s mean of 50 Hz samples weighs about 50), and
+    # its spacing is that of its own kind of row.
+    row_weight: np.ndarray | None = None  # (N,), ones when all rows are alike
+    row_spacing_s: np.ndarray | None = None  # (N,)
     _error: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.row_weight is None:
+            self.row_weight = np.ones(self.t_s.size)
+        if self.row_spacing_s is None:
+            self.row_spacing_s = np.full(self.t_s.size, self.row_dt_s)
 
     def __len__(self) -> int:
         return int(self.t_s.size)
@@ -88,12 +100,14 @@ class Measurements:
         logged = None
         if quantum is not None:
             logged, temp = temp, dequantize(t, temp, run, quantum, _step_time(t, temp, run, quantum))
+        output = frame.loc[:, list(OUTPUT_COLUMNS)].to_numpy(dtype=float)
+        weight, spacing, typical = _row_weights(t, run, output, table)
         return cls(
             t_s=t, run=run, orientation=orient, temp_c=temp,
             chamber_c=frame["chamber_c"].to_numpy(dtype=float), table_rate_dps=table,
             force_g=up.copy(), rate_dps=up * table[:, None], t_on_s=t - first,
-            output=frame.loc[:, list(OUTPUT_COLUMNS)].to_numpy(dtype=float),
-            row_dt_s=_row_spacing(t, run), temperature_quantum_c=quantum, logged_temp_c=logged,
+            output=output, row_dt_s=typical, temperature_quantum_c=quantum, logged_temp_c=logged,
+            row_weight=weight, row_spacing_s=spacing,
         )
 
 
@@ -115,6 +129,51 @@ def _row_spacing(t: np.ndarray, run: np.ndarray) -> float:
     d = np.diff(t)[run[1:] == run[:-1]]
     d = d[d > 0]
     return float(np.median(d)) if d.size else 1.0
+
+
+def _row_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray,
+                 table: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Per row: weight (information relative to the most common kind of row) and spacing;
+    and the most common kind's spacing.
+
+    Rows are grouped by their spacing (half-octave classes); each class's white-noise level
+    is measured on the data, from successive differences within the class (robustly: the
+    slow thermal signal and the odd rate step do not count), so a 1 Hz log of averages and a
+    1 Hz log of single samples get the weights they deserve.
+    """
+    n = t.size
+    same = (run[1:] == run[:-1]) & (np.diff(t) > 0)
+    d = np.diff(t)
+    nxt = np.full(n, np.inf)
+    prv = np.full(n, np.inf)
+    nxt[:-1] = np.where(same, d, np.inf)
+    prv[1:] = np.where(same, d, np.inf)
+    spacing = np.minimum(nxt, prv)
+    typical = _row_spacing(t, run)
+    spacing[~np.isfinite(spacing)] = typical
+    cls = np.round(2.0 * np.log2(np.maximum(spacing, 1e-6))).astype(np.int64)
+    classes, counts = np.unique(cls, return_counts=True)
+    weight = np.ones(n)
+    if classes.size == 1:
+        return weight, spacing, typical
+    variance: dict[int, np.ndarray] = {}
+    for c in classes:
+        idx = np.flatnonzero(cls == c)
+        pair = idx[:-1][(np.diff(idx) == 1) & same[idx[:-1].clip(max=n - 2)] & (table[idx[1:]] == table[idx[:-1]])]
+        if pair.size < 20:
+            continue
+        dy = output[pair + 1] - output[pair]
+        mad = np.median(np.abs(dy - np.median(dy, axis=0)), axis=0)
+        variance[int(c)] = np.maximum((1.4826 * mad) ** 2 / 2.0, 1e-30)
+    if not variance:
+        return weight, spacing, typical
+    ref = max(variance, key=lambda c: counts[classes == c][0])
+    typical = float(np.median(spacing[cls == ref]))
+    known = np.array(sorted(variance))
+    for c in classes:
+        nearest = int(known[np.argmin(np.abs(known - c))])
+        weight[cls == c] = float(np.median(variance[ref] / variance[nearest]))
+    return weight, spacing, typical
 
 
 def _step_time(t: np.ndarray, temp: np.ndarray, run: np.ndarray, quantum: float) -> float:

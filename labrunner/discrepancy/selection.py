@@ -93,6 +93,7 @@ class Searcher:
     def __init__(self, engine: Engine, terms: dict[str, Term], allowed: dict[str, set[str]],
                  min_evidence: float = 10.0, confound_margin: float = 10.0, refine_steps: int = 9,
                  min_rms_gain: float = 0.0, floors: dict[str, float] | None = None,
+                 term_floors: dict[tuple[str, str], float] | None = None,
                  confound_extra: int = 4) -> None:
         self.engine = engine
         self.terms = terms
@@ -102,6 +103,7 @@ class Searcher:
         self.refine_steps = refine_steps
         self.min_rms_gain = min_rms_gain  # fraction by which the raw held-out RMS must drop
         self.floors = floors or {}  # channel -> peak-to-peak effect below which a term is an artifact
+        self.term_floors = term_floors or {}  # (term, channel) -> the same, for one term
         self.confound_extra = confound_extra  # most extra coefficients per channel an alternative may use
 
     # -- one candidate -------------------------------------------------------------------
@@ -317,11 +319,12 @@ always polished at the drift strength that is returned.
             after_spec = replace(spec, Selected.make(ev.term, ev.theta, {c}))
             system = self.engine.system(after_spec, c, rho[c])
             after = self.engine.heldout_rms(after_spec, system)
-            if c in self.floors and ev.term in system.slices:
+            floor = max(self.floors.get(c, 0.0), self.term_floors.get((ev.term, c), 0.0))
+            if floor > 0 and ev.term in system.slices:
                 beta, _ = self.engine.coefficients(after_spec, system)
                 sl = system.slices[ev.term]
                 effect = self.engine.builder.design(after_spec, c).x[:, sl] @ beta[sl]
-                if np.ptp(effect) <= self.floors[c]:
+                if np.ptp(effect) <= floor:
                     continue
             if term.consistent_fn is not None:
                 part = self.engine.term_fit(after_spec, system, ev.term)

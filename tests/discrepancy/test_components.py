@@ -19,7 +19,7 @@ from sims.recursions import play_state
 def _blocks(t: np.ndarray, count: np.ndarray, run: np.ndarray) -> Blocks:
     start = np.r_[0, np.cumsum(count)[:-1]]
     new_run = np.r_[True, run[1:] != run[:-1]]
-    return Blocks(start=start, count=count, t_s=t, run=run, new_run=new_run, block_s=10.0)
+    return Blocks(start=start, count=count, weight=count.astype(float), t_s=t, run=run, new_run=new_run, block_s=10.0)
 
 
 def _kalman_innovations(y, dt, r, rho, observed, diffuse=1e20):
