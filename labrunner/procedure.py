@@ -22,7 +22,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from labrunner.yaml_config import ConfigError, load_yaml, validate
+from labrunner.yaml_config import ConfigError, load_yaml, read_text, validate
 from sims.imu_model import ORIENTATIONS
 
 OrientationName = Literal["x_up", "x_down", "y_up", "y_down", "z_up", "z_down"]
@@ -327,14 +327,7 @@ def parse_procedure(text: str, source: str) -> Procedure:
 
 
 def load_procedure(path: str | Path) -> Procedure:
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError([f"{p}: procedure file not found"]) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError([f"{p}: cannot read: {exc}"]) from None
-    return parse_procedure(text, str(p))
+    return parse_procedure(read_text(path), str(path))
 
 
 __all__ = ["ORIENTATIONS", "Procedure", "ProcedureModel", "Step", "load_procedure", "parse_procedure",

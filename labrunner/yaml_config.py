@@ -135,14 +135,19 @@ def validate(model: type[M], data: Any, positions: Mapping[tuple[Any, ...], int]
         raise ConfigError(lines) from None
 
 
-def load_model(model: type[M], path: str | Path) -> tuple[M, str]:
-    """Read a YAML file into `model`; returns the model and the file's text."""
+def read_text(path: str | Path) -> str:
+    """A configuration file's text; a missing or unreadable file is a ConfigError naming it."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        return p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError([f"{p}: file not found"]) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError([f"{p}: cannot read: {exc}"]) from None
-    data, positions = load_yaml(text, str(p))
-    return validate(model, data, positions, str(p)), text
+
+
+def load_model(model: type[M], path: str | Path) -> tuple[M, str]:
+    """Read a YAML file into `model`; returns the model and the file's text."""
+    text = read_text(path)
+    data, positions = load_yaml(text, str(path))
+    return validate(model, data, positions, str(path)), text

@@ -13,7 +13,7 @@ from typing import Any
 
 from labrunner.clock import ScaledClock
 from labrunner.errors import UserError
-from labrunner.yaml_config import ConfigError, load_yaml
+from labrunner.yaml_config import ConfigError, load_yaml, read_text
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -47,11 +47,7 @@ def sim_config_dict(path: Path | None) -> dict[str, Any]:
 
     if path is None:
         return {}
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError([f"{path}: cannot read: {exc}"]) from None
-    data, positions = load_yaml(text, str(path))
+    data, positions = load_yaml(read_text(path), str(path))
     if data is None:
         return {}
     if not isinstance(data, dict):
