@@ -93,3 +93,48 @@ def test_second_ctrl_c_during_a_record_aborts_to_safe_state(tmp_path, served_lab
         ev = store.events_frame(cid)
         assert store.campaign(cid).status == "aborted"
     assert ev.message.str.contains("lab in safe state: table stopped").any()
+
+
+def test_abort_with_no_process_running_makes_the_lab_safe_itself(tmp_path, served_lab):
+    """A lab campaign whose process died (kill -9) while the table spins: `labrunner abort` connects to
+    the stored lab configuration, stops the table and sends the chamber to the remount temperature."""
+    import yaml
+
+    from drivers.rate_table import SerialRateTable
+    from labrunner.lab import lab_config_from_dict, real_lab
+
+    (tmp_path / "p.yaml").write_text(PROC.replace("list_c: [23]", "list_c: [30]").replace(
+        "tolerance_c: 1.0", "tolerance_c: 1.5"))
+    db = tmp_path / "r.db"
+    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(tmp_path / "p.yaml"), "--lab",
+                          str(served_lab), "--db", str(db), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    p.stdin.write("\n")
+    p.stdin.flush()
+    deadline = time.time() + 90
+    while _steps_done(db) < 2 and time.time() < deadline:
+        time.sleep(0.1)
+    p.kill()
+    p.communicate(timeout=30)
+    cfg = lab_config_from_dict(yaml.safe_load(served_lab.read_text()))
+    table = SerialRateTable(cfg.table.port, max_rate_dps=200)
+    try:
+        table.jog(40.0)  # make sure it spins, whatever step the kill interrupted
+        time.sleep(0.2)
+        assert abs(table.velocity()) > 10
+    finally:
+        table.close()
+    proc = subprocess.run([sys.executable, "-m", "labrunner.cli", "abort", str(db)], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "aborted" in proc.stdout
+    lab = real_lab(cfg, max_rate_dps=200)
+    try:
+        time.sleep(0.2)  # the table decelerates (100 deg/s^2, 50x sped up)
+        assert lab.table.velocity() == 0.0
+        lab.chamber.connect()
+        assert lab.chamber.read_setpoint() == 23.0
+    finally:
+        lab.close()
+    with Store.open_existing(db) as store:
+        assert store.campaign(1).status == "aborted"
