@@ -149,31 +149,33 @@ class FaultInjector:
                 what = f"{fault.duration_s:.0f} s" if fault.duration_s else f"x{fault.count}" if fault.count else ""
                 self.log("injected", f"fault injected: {fault.kind} {what}".rstrip(), asdict(fault))
 
+    # Faults that are a flag on a simulated instrument: set while the fault lasts, cleared after.
+    FLAGS: dict[str, tuple[Any, str]] = {
+        "modbus_timeout": (lambda sim: sim.chamber.faults, "silent"),
+        "garbage_pv": (lambda sim: sim.chamber.faults, "garbage_pv"),
+        "heater_failure": (lambda sim: sim.world.chamber, "heater_failed"),
+        "compressor_failure": (lambda sim: sim.world.chamber, "compressor_failed"),
+        "heater_stuck": (lambda sim: sim.world.chamber, "heater_stuck"),
+        "table_silent": (lambda sim: sim.table.faults, "silent"),
+        "table_garbage": (lambda sim: sim.table.faults, "garbage"),
+    }
+
     def _apply(self, f: Fault, clock_now: float) -> None:
         sim, k = self.sim, f.kind
-        ch = sim.chamber.faults
-        if k == "modbus_timeout":
-            ch.silent = True
+        if k in self.FLAGS:
+            target, attr = self.FLAGS[k]
+            setattr(target(sim), attr, True)
         elif k in ("modbus_exception", "modbus_busy"):
+            ch = sim.chamber.faults
             ch.exception_code, ch.exception_count = (4 if k == "modbus_exception" else 6), max(1, f.count)
         elif k == "modbus_drop":
             sim.chamber.drop_connections()
         elif k == "modbus_outage":
             sim.chamber.refuse_connections(True)
-        elif k == "heater_failure":
-            sim.world.chamber.heater_failed = True
-        elif k == "compressor_failure":
-            sim.world.chamber.compressor_failed = True
-        elif k == "garbage_pv":
-            ch.garbage_pv = True
         elif k == "table_fault":
             sim.table.faults.fault = "E17 OVERCURRENT"
             with sim.world.lock:
                 sim.world.table.command(clock_now, 0.0)  # a faulted drive coasts to rest
-        elif k == "table_silent":
-            sim.table.faults.silent = True
-        elif k == "table_garbage":
-            sim.table.faults.garbage = True
         elif k == "imu_stall":
             sim.imu.faults.stall_from, sim.imu.faults.stall_until = clock_now, clock_now + f.duration_s
         elif k == "imu_corrupt":
@@ -185,8 +187,6 @@ class FaultInjector:
             if hasattr(port, "refusing"):
                 port.refusing = True
                 port.disconnect()
-        elif k == "heater_stuck":
-            sim.world.chamber.heater_stuck = True
         elif k == "table_overspeed":
             with sim.world.lock:
                 sim.world.table.overspeed = 1.6
@@ -196,29 +196,17 @@ class FaultInjector:
 
     def _clear(self, f: Fault) -> None:
         sim, k = self.sim, f.kind
-        ch = sim.chamber.faults
-        if k == "modbus_timeout":
-            ch.silent = False
+        if k in self.FLAGS:
+            target, attr = self.FLAGS[k]
+            setattr(target(sim), attr, False)
         elif k == "modbus_outage":
             sim.chamber.refuse_connections(False)
-        elif k == "heater_failure":
-            sim.world.chamber.heater_failed = False
-        elif k == "compressor_failure":
-            sim.world.chamber.compressor_failed = False
-        elif k == "garbage_pv":
-            ch.garbage_pv = False
         elif k == "table_fault":
             sim.table.faults.fault = None
-        elif k == "table_silent":
-            sim.table.faults.silent = False
-        elif k == "table_garbage":
-            sim.table.faults.garbage = False
         elif k in ("table_link_drop", "imu_link_drop"):
             port = sim.table_port if k == "table_link_drop" else sim.imu_port
             if hasattr(port, "refusing"):
                 port.refusing = False
-        elif k == "heater_stuck":
-            sim.world.chamber.heater_stuck = False
         elif k == "table_overspeed":
             with sim.world.lock:
                 sim.world.table.overspeed = 1.0

@@ -19,6 +19,7 @@ safe state: table stopped, chamber to the remount (ambient) temperature.
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -221,7 +222,7 @@ class CampaignRunner:
 
     def run(self) -> str:
         """Run until done, paused, aborted or failed; returns the final state."""
-        self.store.set_status(self.cid, "running", clock_last=self.lab.clock.now(), pid=_pid())
+        self.store.set_status(self.cid, "running", clock_last=self.lab.clock.now(), pid=os.getpid())
         self.event("info", f"campaign {'resumed' if self.k not in (None, 0) else 'started'} at step {self.k}",
                    mode=self.store.campaign(self.cid).mode)
         self.start()
@@ -502,7 +503,7 @@ class CampaignRunner:
         if rec.dropped > self.p.faults.max_dropped_frames:
             self._record_again(step, rec)
             return
-        if len(rec) and rec.temp_c.max() > self.p.safety.imu_max_temp_c:
+        if len(rec):
             self._interlocks(imu_temp=float(rec.temp_c.max()))
         block = SampleBlock(kind="record", step_idx=step.index, run=self.run_no, orientation=step.orientation,
                             t0_s=t_first + (rec.counter[0] - (start + 1)) / imu.rate_hz if len(rec) else t_first,
@@ -627,8 +628,3 @@ class CampaignRunner:
     def current_step(self) -> Step | None:
         return None if self.k is None else self.plan[self.k]
 
-
-def _pid() -> int:
-    import os
-
-    return os.getpid()

@@ -40,6 +40,22 @@ def served_lab(tmp_path):
     proc.wait(10)
 
 
+def _run_on_lab(proc_file, lab_yaml, db):
+    """`labrunner run` on the served lab, with the operator acknowledging the mounting prompt."""
+    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(proc_file), "--lab", str(lab_yaml),
+                          "--db", str(db), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    p.stdin.write("\n")
+    p.stdin.flush()
+    return p
+
+
+def _wait_steps(db, n, timeout):
+    deadline = time.time() + timeout
+    while _steps_done(db) < n and time.time() < deadline:
+        time.sleep(0.1)
+
+
 def _steps_done(db):
     try:
         with Store.open_existing(db) as store:
@@ -59,10 +75,8 @@ def test_rehearsal_runs_to_the_end(tmp_path, served_lab):
     assert "no terminal to acknowledge" in err or "stdin" in err
 
     db2 = tmp_path / "r2.db"
-    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(tmp_path / "p.yaml"), "--lab",
-                          str(served_lab), "--db", str(db2), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    out, err = p.communicate(input="\n", timeout=120)
+    p = _run_on_lab(tmp_path / "p.yaml", served_lab, db2)
+    out, err = p.communicate(timeout=120)
     assert p.returncode == 0, err
     assert "OPERATOR: Mount the IMU z up" in err
     with Store.open_existing(db2) as store:
@@ -73,14 +87,8 @@ def test_rehearsal_runs_to_the_end(tmp_path, served_lab):
 def test_second_ctrl_c_during_a_record_aborts_to_safe_state(tmp_path, served_lab):
     (tmp_path / "p.yaml").write_text(PROC)
     db = tmp_path / "r.db"
-    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(tmp_path / "p.yaml"), "--lab",
-                          str(served_lab), "--db", str(db), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    p.stdin.write("\n")
-    p.stdin.flush()
-    deadline = time.time() + 60
-    while _steps_done(db) < 1 and time.time() < deadline:
-        time.sleep(0.1)
+    p = _run_on_lab(tmp_path / "p.yaml", served_lab, db)
+    _wait_steps(db, 1, 60)
     time.sleep(0.2)  # into the next record (0.6 s of wall time at 50x)
     p.send_signal(signal.SIGINT)
     time.sleep(0.15)
@@ -106,14 +114,8 @@ def test_abort_with_no_process_running_makes_the_lab_safe_itself(tmp_path, serve
     (tmp_path / "p.yaml").write_text(PROC.replace("list_c: [23]", "list_c: [30]").replace(
         "tolerance_c: 1.0", "tolerance_c: 1.5"))
     db = tmp_path / "r.db"
-    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(tmp_path / "p.yaml"), "--lab",
-                          str(served_lab), "--db", str(db), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    p.stdin.write("\n")
-    p.stdin.flush()
-    deadline = time.time() + 90
-    while _steps_done(db) < 2 and time.time() < deadline:
-        time.sleep(0.1)
+    p = _run_on_lab(tmp_path / "p.yaml", served_lab, db)
+    _wait_steps(db, 2, 90)
     p.kill()
     p.communicate(timeout=30)
     cfg = lab_config_from_dict(yaml.safe_load(served_lab.read_text()))
