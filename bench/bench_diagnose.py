@@ -24,9 +24,9 @@ sys.path.insert(0, str(ROOT))
 from labrunner.campaign_csv import write_campaign
 from labrunner.cli import main
 from labrunner.discrepancy import diagnose
-from sims.campaign import CampaignPlan, synthesize
-from sims.imu_model import default_imu_model
-from sims.world import SimLabConfig
+from labrunner.sims.campaign import CampaignPlan, synthesize
+from labrunner.sims.imu_model import default_imu_model
+from labrunner.sims.world import SimLabConfig
 
 
 def campaign(rows: int, seed: int):

@@ -44,9 +44,9 @@ def main() -> int:
         frame = load_campaign_data(args.data).frame
         print(f"load: {time.perf_counter() - t0:.1f} s, {len(frame):,} rows")
     else:
-        from sims.campaign import CampaignPlan, synthesize, triangular_rates
-        from sims.imu_model import default_imu_model
-        from sims.world import SimLabConfig
+        from labrunner.sims.campaign import CampaignPlan, synthesize, triangular_rates
+        from labrunner.sims.imu_model import default_imu_model
+        from labrunner.sims.world import SimLabConfig
 
         model = default_imu_model()
         if args.nonlinear:

@@ -12,12 +12,12 @@ import time
 
 import numpy as np
 
-from drivers.imu_frames import FrameDecoder, encode_frames
-from drivers.imu_serial import SerialImu
+from labrunner.drivers.imu_frames import FrameDecoder, encode_frames
+from labrunner.drivers.imu_serial import SerialImu
 from labrunner.clock import VirtualClock
-from sims.imu_stream import ImuStreamSim
-from sims.links import PtyPort, TcpSerialPort
-from sims.world import SimLabConfig, SimWorld
+from labrunner.sims.imu_stream import ImuStreamSim
+from labrunner.sims.links import PtyPort, TcpSerialPort
+from labrunner.sims.world import SimLabConfig, SimWorld
 
 
 def main() -> None:

@@ -13,15 +13,10 @@ import numpy as np
 import pandas as pd
 
 from labrunner.errors import UserError
-from sims.imu_model import ORIENTATIONS
+from labrunner.domain import ACCEL_COLUMNS, GYRO_COLUMNS, ORIENTATIONS, OUTPUT_COLUMNS
+from labrunner.domain import CSV_COLUMNS as COLUMNS
 
-COLUMNS: tuple[str, ...] = (
-    "t_s", "run", "orientation", "chamber_c", "imu_temp_c", "table_rate_dps",
-    "ax_g", "ay_g", "az_g", "gx_dps", "gy_dps", "gz_dps",
-)
-ACCEL_COLUMNS = ("ax_g", "ay_g", "az_g")
-GYRO_COLUMNS = ("gx_dps", "gy_dps", "gz_dps")
-OUTPUT_COLUMNS = ACCEL_COLUMNS + GYRO_COLUMNS
+__all__ = ["COLUMNS", "ACCEL_COLUMNS", "GYRO_COLUMNS", "OUTPUT_COLUMNS", "read_campaign", "write_campaign"]
 # Columns that must hold a number on every row; chamber_c may be empty (no chamber).
 REQUIRED_NUMERIC = ("t_s", "imu_temp_c", "table_rate_dps") + OUTPUT_COLUMNS
 

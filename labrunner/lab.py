@@ -16,11 +16,11 @@ from typing import Any, Literal, Protocol
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from drivers.chamber_modbus import ModbusAddress, ModbusChamber
-from drivers.chamber_profiles import profile_from
-from drivers.imu_serial import SerialImu
-from drivers.protocols import Chamber, Imu, RateTable
-from drivers.rate_table import SerialRateTable
+from labrunner.drivers.chamber_modbus import ModbusAddress, ModbusChamber
+from labrunner.drivers.chamber_profiles import profile_from
+from labrunner.drivers.imu_serial import SerialImu
+from labrunner.drivers.protocols import Chamber, Imu, RateTable
+from labrunner.drivers.rate_table import SerialRateTable
 from labrunner.clock import Clock, ScaledClock, VirtualClock, WallClock
 from labrunner.yaml_config import ConfigError, load_model, validate
 
@@ -172,8 +172,8 @@ def simulated_lab(*, max_rate_dps: float, sim_config: Any = None, start_t: float
                   link: str = "tcp", on_retry: Callable[[int, Exception], None] | None = None,
                   on_event: Callable[[str, str], None] | None = None) -> Lab:
     """A dry-run lab: sims on a virtual clock, reached through the real drivers."""
-    from sims.lab import SimLab
-    from sims.world import SimLabConfig
+    from labrunner.sims.lab import SimLab
+    from labrunner.sims.world import SimLabConfig
 
     cfg = sim_config or SimLabConfig()
     if orientation is not None:

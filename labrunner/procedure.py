@@ -23,7 +23,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from labrunner.yaml_config import ConfigError, load_yaml, read_text, validate
-from sims.imu_model import ORIENTATIONS
+from labrunner.domain import ORIENTATIONS
 
 OrientationName = Literal["x_up", "x_down", "y_up", "y_down", "z_up", "z_down"]
 

@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 from transitions import Machine
 
-from drivers.errors import InstrumentError, LimitError
-from drivers.protocols import ImuRecord
+from labrunner.drivers.errors import InstrumentError, LimitError
+from labrunner.drivers.protocols import ImuRecord
 from labrunner.lab import Lab
 from labrunner.procedure import Procedure, Step
 from labrunner.store import SampleBlock, Store

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from drivers.imu_frames import ACCEL_LSB_G, GYRO_LSB_DPS, TEMP_LSB_C
+from labrunner.drivers.imu_frames import ACCEL_LSB_G, GYRO_LSB_DPS, TEMP_LSB_C
 from .imu_model import ORIENTATIONS, ModelState
 from .world import SimLabConfig, SimWorld
 

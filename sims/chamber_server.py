@@ -18,7 +18,7 @@ from pymodbus.framer import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.chamber_profiles import ChamberProfile, profile_from
+from labrunner.drivers.chamber_profiles import ChamberProfile, profile_from
 from labrunner.clock import Clock
 
 from .aio import LoopThread

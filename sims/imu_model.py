@@ -25,41 +25,22 @@ from typing import Any
 
 import numpy as np
 
+from labrunner.domain import (  # noqa: F401  (re-exported: the model's vocabulary)
+    ACCEL_CHANNELS,
+    CHANNELS,
+    GYRO_CHANNELS,
+    ORIENTATIONS,
+    STANDARD_GRAVITY,
+    T_REF_C,
+    UP_VECTORS,
+    orientation_index,
+    up_vector,
+)
+
 from .recursions import first_order_lag, play_state
 
-CHANNELS: tuple[str, ...] = ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
-ACCEL_CHANNELS = CHANNELS[:3]
-GYRO_CHANNELS = CHANNELS[3:]
-ORIENTATIONS: tuple[str, ...] = ("x_up", "x_down", "y_up", "y_down", "z_up", "z_down")
-T_REF_C = 25.0
 POLY_ORDER = 3  # cubic thermal terms: coefficients c0..c3 of (T - T_REF_C)**k
 N_COEF = POLY_ORDER + 1
-
-
-def up_vector(orientation: str) -> np.ndarray:
-    """Body-frame unit vector of local 'up' for an orientation label."""
-    try:
-        i = ORIENTATIONS.index(orientation)
-    except ValueError:
-        raise ValueError(f"unknown orientation {orientation!r}; expected one of {', '.join(ORIENTATIONS)}") from None
-    v = np.zeros(3)
-    v[i // 2] = 1.0 if i % 2 == 0 else -1.0
-    return v
-
-
-UP_VECTORS = np.array([up_vector(o) for o in ORIENTATIONS])  # (6, 3), row per orientation label
-
-
-def orientation_index(labels: Any) -> np.ndarray:
-    """Index into ORIENTATIONS for each label; raises ValueError naming the first unknown one."""
-    arr = np.asarray(labels, dtype=object)
-    out = np.full(arr.shape, -1, dtype=np.int64)
-    for i, name in enumerate(ORIENTATIONS):
-        out[arr == name] = i
-    if (out < 0).any():
-        bad = arr[out < 0][0]
-        raise ValueError(f"unknown orientation {bad!r}; expected one of {', '.join(ORIENTATIONS)}")
-    return out
 
 
 def thermal_powers(temp_c: np.ndarray) -> np.ndarray:
@@ -203,8 +184,6 @@ class LeverArm:
 
     r_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
 
-
-STANDARD_GRAVITY = 9.80665
 
 
 @dataclass

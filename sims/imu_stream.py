@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.imu_frames import FRAME_SIZE, encode_frames
+from labrunner.drivers.imu_frames import FRAME_SIZE, encode_frames
 from labrunner.clock import Clock
 
 from .imu_model import ModelState

@@ -3,7 +3,7 @@
 import pytest
 
 from labrunner.clock import VirtualClock
-from sims.world import SimLabConfig, SimWorld
+from labrunner.sims.world import SimLabConfig, SimWorld
 
 
 @pytest.fixture

@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from drivers.imu_frames import FRAME_SIZE, FrameDecoder, crc16, encode_frames, unwrap_counter
+from labrunner.drivers.imu_frames import FRAME_SIZE, FrameDecoder, crc16, encode_frames, unwrap_counter
 from labrunner.campaign_csv import COLUMNS, CampaignDataError, read_campaign, write_campaign
 
 

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from sims.chamber_plant import ChamberParams, ChamberPlant
-from sims.imu_model import (
+from labrunner.sims.chamber_plant import ChamberParams, ChamberPlant
+from labrunner.sims.imu_model import (
     ImuInputs, ImuModel, ModelState, baseline_design, default_imu_model, orientation_index, up_vector,
 )
-from sims.recursions import first_order_lag, ltv_first_order, play_state
-from sims.table_plant import TablePlant
+from labrunner.sims.recursions import first_order_lag, ltv_first_order, play_state
+from labrunner.sims.table_plant import TablePlant
 
 
 def _loop(a, b, y0):

@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from labrunner.campaign_csv import OUTPUT_COLUMNS
-from sims.imu_model import ORIENTATIONS, UP_VECTORS
+from labrunner.domain import ORIENTATIONS, UP_VECTORS
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from sims.imu_model import CHANNELS, ORIENTATIONS
+from labrunner.domain import CHANNELS, ORIENTATIONS
 
 TRIADS: tuple[str, ...] = ("accel", "gyro")
 AXES = "xyz"

@@ -164,7 +164,7 @@ def _execute(runner: Any, quiet: bool, db: Path) -> int:
 
 def _sim_lab(procedure: Any, sim_dict: dict[str, Any], start_t: float, orientation: str | None) -> Any:
     from labrunner.lab import simulated_lab
-    from sims.world import SimLabConfig
+    from labrunner.sims.world import SimLabConfig
 
     try:
         config = SimLabConfig.from_dict(sim_dict)

@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def sim_config_dict(path: Path | None) -> dict[str, Any]:
     """Read and validate a sim configuration file; returns its mapping (stored with dry-run campaigns)."""
     from labrunner.fault_plan import Fault
-    from sims.world import SimLabConfig
+    from labrunner.sims.world import SimLabConfig
 
     if path is None:
         return {}
@@ -75,7 +75,7 @@ def sim_config_dict(path: Path | None) -> dict[str, Any]:
 
 
 def load_sim_config(path: Path | None) -> Any:
-    from sims.world import SimLabConfig
+    from labrunner.sims.world import SimLabConfig
 
     return SimLabConfig.from_dict(sim_config_dict(path))
 
@@ -83,7 +83,7 @@ def load_sim_config(path: Path | None) -> Any:
 def serve_command(args: argparse.Namespace) -> int:
     import yaml
 
-    from sims.lab import SimLab, SimPorts
+    from labrunner.sims.lab import SimLab, SimPorts
 
     if args.speed <= 0:
         raise UserError("--speed must be > 0")

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from sims.imu_model import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, ORIENTATIONS, UP_VECTORS
+from labrunner.domain import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, ORIENTATIONS, UP_VECTORS
 
 from .measurements import Measurements
 from .temperature import branch_state, temperature_rate

@@ -16,7 +16,8 @@ import numpy as np
 import pandas as pd
 
 from labrunner.errors import UserError
-from sims.imu_model import GYRO_CHANNELS, CHANNELS, ImuModel
+from labrunner.domain import CHANNELS, GYRO_CHANNELS
+from labrunner.sims.imu_model import ImuModel
 
 from .advice import separating_measurement
 from .blas import single_threaded_blas

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sims.imu_model import CHANNELS
+from labrunner.domain import CHANNELS
 
 from .blocks import Blocks
 from .crossval import CvResult, cross_validate, extend_gram, full_fit, solve

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sims.imu_model import CHANNELS, T_REF_C
+from labrunner.domain import CHANNELS, T_REF_C
 
 from .crossval import solve
 from .model import DesignBuilder, design_derivative

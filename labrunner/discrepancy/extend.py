@@ -13,7 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from sims.imu_model import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, ImuModel, TriadModel
+from labrunner.domain import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS
+
+from labrunner.sims.imu_model import ImuModel, TriadModel
 
 from .blocks import Blocks
 from .measurements import Measurements

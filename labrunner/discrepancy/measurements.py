@@ -13,7 +13,8 @@ import numpy as np
 import pandas as pd
 
 from labrunner.campaign_csv import OUTPUT_COLUMNS, read_campaign
-from sims.imu_model import CHANNELS, UP_VECTORS, ImuInputs, orientation_index
+from labrunner.domain import CHANNELS, UP_VECTORS, orientation_index
+from labrunner.sims.imu_model import ImuInputs
 
 from .temperature import dequantize, temperature_rate
 

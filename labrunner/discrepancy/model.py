@@ -11,7 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sims.imu_model import CHANNELS, T_REF_C, baseline_design
+from labrunner.domain import CHANNELS, T_REF_C
+
+from labrunner.sims.imu_model import baseline_design
 
 from .terms import Term, TermContext
 

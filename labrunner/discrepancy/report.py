@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from sims.imu_model import CHANNELS, ORIENTATIONS
+from labrunner.domain import CHANNELS, ORIENTATIONS
 
 if TYPE_CHECKING:
     from .diagnose import Diagnosis

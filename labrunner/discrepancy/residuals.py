@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from sims.imu_model import CHANNELS, ORIENTATIONS
+from labrunner.domain import CHANNELS, ORIENTATIONS
 
 from .blocks import Blocks
 from .measurements import Measurements

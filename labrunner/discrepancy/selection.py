@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sims.imu_model import CHANNELS
+from labrunner.domain import CHANNELS
 
 from .engine import ChannelSystem, Engine
 from .model import BASELINE, PER_CHANNEL_TERMS, Selected, Spec, design_derivative, lag_tau, replace, without

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sims.recursions import first_order_lag, play_state
+from labrunner.domain import ROOM_C
+from labrunner.sims.recursions import first_order_lag, play_state
 
 
 def dequantize(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarray, quantum_c: float,
@@ -59,7 +60,6 @@ def _dequantize_run(t: np.ndarray, level: np.ndarray, settle_s: float) -> np.nda
     return np.where(through, linear, settled)
 
 
-ROOM_C = 23.0  # where a campaign starts and where the IMU is remounted (the chamber is open)
 
 
 def branch_state(temp_c: np.ndarray, travel_c: float, remounts: np.ndarray | None = None) -> np.ndarray:

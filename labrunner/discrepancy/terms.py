@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from sims.imu_model import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, STANDARD_GRAVITY
+from labrunner.domain import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, STANDARD_GRAVITY
 
 from .blocks import Blocks
 from .measurements import Measurements

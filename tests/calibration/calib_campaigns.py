@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pandas as pd
 
-from sims.campaign import CampaignPlan, synthesize
-from sims.imu_model import ImuModel, default_imu_model
-from sims.world import SimLabConfig
+from labrunner.sims.campaign import CampaignPlan, synthesize
+from labrunner.sims.imu_model import ImuModel, default_imu_model
+from labrunner.sims.world import SimLabConfig
 
 # A smooth step in temperature that a cubic cannot follow (amplitudes: g and deg/s).
 NONLINEAR_AMPLITUDE = {"accel_x": 0.01, "accel_y": -0.008, "accel_z": 0.012,

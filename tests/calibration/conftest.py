@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from calib_campaigns import make_campaign, nonlinear_model
 
-from sims.campaign import triangular_rates
+from labrunner.sims.campaign import triangular_rates
 
 
 @pytest.fixture(scope="session")

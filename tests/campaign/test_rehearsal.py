@@ -108,7 +108,7 @@ def test_abort_with_no_process_running_makes_the_lab_safe_itself(tmp_path, serve
     the stored lab configuration, stops the table and sends the chamber to the remount temperature."""
     import yaml
 
-    from drivers.rate_table import SerialRateTable
+    from labrunner.drivers.rate_table import SerialRateTable
     from labrunner.lab import lab_config_from_dict, real_lab
 
     (tmp_path / "p.yaml").write_text(PROC.replace("list_c: [23]", "list_c: [30]").replace(

@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from sims.campaign import CampaignPlan, synthesize
-from sims.imu_model import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, default_imu_model
-from sims.world import SimLabConfig
+from labrunner.sims.campaign import CampaignPlan, synthesize
+from labrunner.sims.imu_model import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, default_imu_model
+from labrunner.sims.world import SimLabConfig
 
 TEMPERATURES = (-25.0, -5.0, 15.0, 35.0, 55.0)
 LOG_TEMPERATURES = (-25.0, 0.0, 30.0, 55.0)  # real logs include the ramps: four soaks cover the range

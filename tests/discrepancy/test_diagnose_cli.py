@@ -9,7 +9,7 @@ import pytest
 
 from labrunner.campaign_csv import write_campaign
 from labrunner.cli import main
-from sims.world import SimLabConfig
+from labrunner.sims.world import SimLabConfig
 
 from .campaigns import DRAWS, campaign
 from .test_hidden_effects import case_seed

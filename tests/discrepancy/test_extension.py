@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from labrunner.discrepancy import Measurements, check_model, diagnose
-from sims.campaign import synthesize
-from sims.imu_model import CHANNELS
-from sims.world import SimLabConfig
+from labrunner.sims.campaign import synthesize
+from labrunner.sims.imu_model import CHANNELS
+from labrunner.sims.world import SimLabConfig
 
 from .campaigns import DRAWS, campaign, plan_for
 from .test_hidden_effects import case_seed

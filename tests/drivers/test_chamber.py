@@ -6,10 +6,10 @@ import time
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from drivers.chamber_modbus import ModbusAddress, ModbusChamber
-from drivers.chamber_profiles import PROFILES, profile_from
-from drivers.errors import InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
-from sims.chamber_server import ChamberServer
+from labrunner.drivers.chamber_modbus import ModbusAddress, ModbusChamber
+from labrunner.drivers.chamber_profiles import PROFILES, profile_from
+from labrunner.drivers.errors import InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
+from labrunner.sims.chamber_server import ChamberServer
 
 
 @pytest.fixture

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from drivers.imu_frames import FRAME_SIZE, FrameDecoder
-from drivers.imu_serial import SerialImu
-from sims.imu_stream import ImuStreamSim
-from sims.links import PtyPort, TcpSerialPort
+from labrunner.drivers.imu_frames import FRAME_SIZE, FrameDecoder
+from labrunner.drivers.imu_serial import SerialImu
+from labrunner.sims.imu_stream import ImuStreamSim
+from labrunner.sims.links import PtyPort, TcpSerialPort
 
 
 @pytest.fixture(params=["tcp", "pty"])
@@ -92,7 +92,7 @@ def test_link_that_disappears_comes_back():
 
 
 def test_decoder_counts_a_corrupt_stretch_once_however_bytes_arrive():
-    from drivers.imu_frames import encode_frames
+    from labrunner.drivers.imu_frames import encode_frames
 
     n = 50
     raw = bytearray(encode_frames(np.arange(n), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)))

@@ -7,10 +7,10 @@ import tty
 
 import pytest
 
-from drivers.errors import InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
-from drivers.rate_table import SerialRateTable
-from sims.links import PtyPort, TcpSerialPort
-from sims.table_server import TableServer
+from labrunner.drivers.errors import InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
+from labrunner.drivers.rate_table import SerialRateTable
+from labrunner.sims.links import PtyPort, TcpSerialPort
+from labrunner.sims.table_server import TableServer
 
 
 class ScriptedPeer:
