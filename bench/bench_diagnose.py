@@ -25,7 +25,7 @@ from labrunner.campaign_csv import write_campaign
 from labrunner.cli import main
 from labrunner.discrepancy import diagnose
 from labrunner.sims.campaign import CampaignPlan, synthesize
-from labrunner.sims.imu_model import default_imu_model
+from labrunner.imu.model import default_imu_model
 from labrunner.sims.world import SimLabConfig
 
 

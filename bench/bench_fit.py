@@ -45,7 +45,7 @@ def main() -> int:
         print(f"load: {time.perf_counter() - t0:.1f} s, {len(frame):,} rows")
     else:
         from labrunner.sims.campaign import CampaignPlan, synthesize, triangular_rates
-        from labrunner.sims.imu_model import default_imu_model
+        from labrunner.imu.model import default_imu_model
         from labrunner.sims.world import SimLabConfig
 
         model = default_imu_model()

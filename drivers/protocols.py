@@ -7,7 +7,7 @@ table and a serial IMU stream implement them, and so would a different controlle
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -95,3 +95,22 @@ class Imu(Protocol):
     def begin_record(self) -> int: ...
     def end_record(self, start: int, n_frames: int, timeout_s: float) -> ImuRecord: ...
     def restart_stream(self) -> None: ...
+
+
+class Operator(Protocol):
+    """Whoever remounts the IMU when the procedure asks."""
+
+    def remount(self, orientation: str, prompt: str) -> None: ...
+
+
+class Instruments(Protocol):
+    """What the sequencer runs on: the connected instruments, the operator and the clock.
+
+    `labrunner.lab.Lab` is the concrete bundle; tests pass fakes.
+    """
+
+    chamber: Chamber
+    table: RateTable
+    imu: Imu
+    operator: Operator
+    clock: Any

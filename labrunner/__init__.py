@@ -1,8 +1,5 @@
 """labrunner: thermal-calibration campaigns for MEMS IMUs."""
 
-from importlib.metadata import PackageNotFoundError, version
+from labrunner.version import __version__
 
-try:
-    __version__ = version("labrunner")
-except PackageNotFoundError:  # running from a source tree that was not installed
-    __version__ = "0.0.0+source"
+__all__ = ["__version__"]

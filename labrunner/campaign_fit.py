@@ -10,7 +10,7 @@ from labrunner.store import Store
 
 def fit_and_store(store: Store, campaign_id: int, fit_cfg: Any, out_dir: str | Path | None) -> str:
     """Fit the campaign's records; returns the summary text."""
-    from labrunner.calibration.command import write_outputs
+    from labrunner.calibration.outputs import write_outputs
     from labrunner.calibration.fit import FitOptions, fit_campaign
     from labrunner.calibration.report import summary_markdown
 

@@ -12,14 +12,14 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from labrunner.drivers.chamber_modbus import ModbusAddress, ModbusChamber
 from labrunner.drivers.chamber_profiles import profile_from
 from labrunner.drivers.imu_serial import SerialImu
-from labrunner.drivers.protocols import Chamber, Imu, RateTable
+from labrunner.drivers.protocols import Chamber, Imu, Operator, RateTable
 from labrunner.drivers.rate_table import SerialRateTable
 from labrunner.clock import Clock, ScaledClock, VirtualClock, WallClock
 from labrunner.yaml_config import ConfigError, load_model, validate
@@ -80,12 +80,6 @@ def load_lab_config(path: str | Path) -> tuple[LabConfig, str]:
 
 def lab_config_from_dict(data: dict[str, Any], source: str = "lab configuration") -> LabConfig:
     return validate(LabConfig, data, {}, source)
-
-
-class Operator(Protocol):
-    """Whoever remounts the IMU when the procedure asks."""
-
-    def remount(self, orientation: str, prompt: str) -> None: ...
 
 
 class ConsoleOperator:

@@ -30,7 +30,7 @@ from transitions import Machine
 
 from labrunner.drivers.errors import InstrumentError, LimitError
 from labrunner.drivers.protocols import ImuRecord
-from labrunner.lab import Lab
+from labrunner.drivers.protocols import Instruments as Lab
 from labrunner.procedure import Procedure, Step
 from labrunner.store import SampleBlock, Store
 

@@ -34,7 +34,7 @@ from sqlalchemy import (
 from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.exc import DatabaseError, OperationalError
 
-from labrunner import __version__
+from labrunner.version import __version__
 from labrunner.campaign_csv import COLUMNS
 from labrunner.errors import UserError
 

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from labrunner.drivers.imu_frames import ACCEL_LSB_G, GYRO_LSB_DPS, TEMP_LSB_C
-from .imu_model import ORIENTATIONS, ModelState
+from labrunner.imu.model import ORIENTATIONS, ModelState
 from .world import SimLabConfig, SimWorld
 
 CSV_COLUMNS = (

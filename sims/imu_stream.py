@@ -18,7 +18,7 @@ import numpy as np
 from labrunner.drivers.imu_frames import FRAME_SIZE, encode_frames
 from labrunner.clock import Clock
 
-from .imu_model import ModelState
+from labrunner.imu.model import ModelState
 from .links import SimPort
 from .world import SimWorld
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from .chamber_plant import ChamberParams, ChamberPlant
-from .imu_model import ImuInputs, ImuModel, default_imu_model, up_vector
+from labrunner.imu.model import ImuInputs, ImuModel, default_imu_model, up_vector
 from .table_plant import TableParams, TablePlant
 
 HISTORY_S = 6 * 3600.0  # how far back IMU temperatures can be asked for

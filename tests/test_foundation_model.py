@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from labrunner.sims.chamber_plant import ChamberParams, ChamberPlant
-from labrunner.sims.imu_model import (
+from labrunner.imu.model import (
     ImuInputs, ImuModel, ModelState, baseline_design, default_imu_model, orientation_index, up_vector,
 )
-from labrunner.sims.recursions import first_order_lag, ltv_first_order, play_state
+from labrunner.imu.recursions import first_order_lag, ltv_first_order, play_state
 from labrunner.sims.table_plant import TablePlant
 
 

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-import labrunner
+from labrunner.version import __version__
 from labrunner.errors import UserError
 
 from .evaluation import SPLITS, SplitResult, evaluate
@@ -277,7 +277,7 @@ def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provena
         timings["evaluation"] = time.perf_counter() - t2
     prov = dict(provenance or {})
     prov.setdefault("rows", int(len(frame)))
-    prov["software"] = {"name": "labrunner", "version": labrunner.__version__}
+    prov["software"] = {"name": "labrunner", "version": __version__}
     prov["fitted_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     return FitResult(options=opt, models=models, records=records, evaluation=evaluation, provenance=prov,
                      data_summary=summarize_data(frame, records, models.steps), timings_s=timings)

@@ -17,7 +17,7 @@ import pandas as pd
 
 from labrunner.errors import UserError
 from labrunner.domain import CHANNELS, GYRO_CHANNELS
-from labrunner.sims.imu_model import ImuModel
+from labrunner.imu.model import ImuModel
 
 from .advice import separating_measurement
 from .blas import single_threaded_blas

@@ -15,7 +15,7 @@ import numpy as np
 
 from labrunner.domain import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS
 
-from labrunner.sims.imu_model import ImuModel, TriadModel
+from labrunner.imu.model import ImuModel, TriadModel
 
 from .blocks import Blocks
 from .measurements import Measurements

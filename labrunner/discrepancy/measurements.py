@@ -14,7 +14,7 @@ import pandas as pd
 
 from labrunner.campaign_csv import OUTPUT_COLUMNS, read_campaign
 from labrunner.domain import CHANNELS, UP_VECTORS, orientation_index
-from labrunner.sims.imu_model import ImuInputs
+from labrunner.imu.model import ImuInputs
 
 from .temperature import dequantize, temperature_rate
 

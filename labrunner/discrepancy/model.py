@@ -13,7 +13,7 @@ import numpy as np
 
 from labrunner.domain import CHANNELS, T_REF_C
 
-from labrunner.sims.imu_model import baseline_design
+from labrunner.imu.model import baseline_design
 
 from .terms import Term, TermContext
 

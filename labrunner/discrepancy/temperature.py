@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from labrunner.domain import ROOM_C
-from labrunner.sims.recursions import first_order_lag, play_state
+from labrunner.imu.recursions import first_order_lag, play_state
 
 
 def dequantize(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarray, quantum_c: float,

@@ -8,7 +8,7 @@ from calib_campaigns import make_campaign
 
 from labrunner.calibration.fit import FitOptions, fit_campaign
 from labrunner.errors import UserError
-from labrunner.sims.imu_model import default_imu_model
+from labrunner.imu.model import default_imu_model
 
 FAST = FitOptions(rbf_variants=("paper",), rbf_export="paper", splits=("random",))
 TEMPS = (-20.0, 0.0, 20.0, 40.0)

@@ -9,7 +9,7 @@ from calib_campaigns import make_campaign
 from labrunner.calibration.rbf import farthest_points, forward_select, gaussian_design, ridge_gcv, train_rbf
 from labrunner.calibration.rbf_model import RbfOptions, network_inputs, train_rbf_model
 from labrunner.calibration.records import frame_arrays, reference_values, segment_records
-from labrunner.sims.imu_model import default_imu_model
+from labrunner.imu.model import default_imu_model
 
 
 def _smooth(x: np.ndarray) -> np.ndarray:

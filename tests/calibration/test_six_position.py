@@ -6,7 +6,7 @@ import numpy as np
 
 from labrunner.calibration.records import segment_records, temperature_steps
 from labrunner.calibration.six_position import calibrate_steps, six_position
-from labrunner.sims.imu_model import ORIENTATIONS, UP_VECTORS, default_imu_model
+from labrunner.imu.model import ORIENTATIONS, UP_VECTORS, default_imu_model
 
 from calib_campaigns import make_campaign
 

@@ -8,7 +8,7 @@ import pytest
 from labrunner.calibration.records import segment_records, temperature_steps
 from labrunner.calibration.six_position import calibrate_steps
 from labrunner.calibration.thermal_poly import cv_order, fit_joint, fit_two_stage, record_prediction
-from labrunner.sims.imu_model import default_imu_model
+from labrunner.imu.model import default_imu_model
 
 
 @pytest.fixture(scope="module")

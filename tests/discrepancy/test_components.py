@@ -12,8 +12,8 @@ from labrunner.discrepancy.drift import FoldFilters, riccati
 from labrunner.discrepancy.measurements import Measurements
 from labrunner.discrepancy.temperature import ROOM_C, branch_state, dequantize
 from labrunner.discrepancy.terms import offsets_roughness, turn_on_sigma
-from labrunner.sims.imu_model import ImuInputs, ImuModel, default_imu_model
-from labrunner.sims.recursions import play_state
+from labrunner.imu.model import ImuInputs, ImuModel, default_imu_model
+from labrunner.imu.recursions import play_state
 
 
 def _blocks(t: np.ndarray, count: np.ndarray, run: np.ndarray) -> Blocks:

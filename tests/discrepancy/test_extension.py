@@ -6,7 +6,7 @@ import numpy as np
 
 from labrunner.discrepancy import Measurements, check_model, diagnose
 from labrunner.sims.campaign import synthesize
-from labrunner.sims.imu_model import CHANNELS
+from labrunner.imu.model import CHANNELS
 from labrunner.sims.world import SimLabConfig
 
 from .campaigns import DRAWS, campaign, plan_for

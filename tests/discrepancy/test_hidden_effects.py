@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from labrunner.discrepancy import diagnose
-from labrunner.sims.imu_model import CHANNELS, GYRO_CHANNELS
+from labrunner.imu.model import CHANNELS, GYRO_CHANNELS
 
 from .campaigns import DRAWS, Hidden, campaign
 
