@@ -32,6 +32,7 @@ from labrunner.drivers.errors import InstrumentError, LimitError
 from labrunner.drivers.protocols import ImuRecord
 from labrunner.drivers.protocols import Instruments as Lab
 from labrunner.procedure import Procedure, Step
+from labrunner.runner.safe_stop import safe_stop
 from labrunner.store import SampleBlock, Store
 
 STATES = ["idle", "preflight", "mounting", "ramping", "soaking", "rate_settling", "recording", "fitting", "done",
@@ -60,8 +61,6 @@ TRANSITIONS = [
 ]
 
 Progress = Callable[["CampaignRunner"], None]
-SAFE_STOP_PERSIST_S = 600.0  # keep trying to reach the safe state this long (lab time) before giving up
-SAFE_STOP_RETRY_S = 15.0
 
 
 class _Stop(Exception):
@@ -572,25 +571,12 @@ class CampaignRunner:
 
     def _do_safe_stop(self) -> None:
         """Table stopped, chamber to the remount temperature; keep trying for a while, the lab must be safe."""
-        actions = {"stop the table": self.lab.table.stop,
-                   "set the chamber to the remount temperature": lambda: self.lab.chamber.set_setpoint(self.p.remount_c)}
-        problems: dict[str, str] = {}
-        deadline = self.t + SAFE_STOP_PERSIST_S
-        while True:
-            for what, action in list(actions.items()):
-                try:
-                    action()
-                    actions.pop(what)
-                    problems.pop(what, None)
-                except Exception as exc:
-                    problems[what] = f"could not {what}: {exc}"
-            if not actions or self.t >= deadline:
-                break
-            self.event("fault", "safe state not reached yet, trying again: " + "; ".join(problems.values()))
-            self.lab.clock.sleep(SAFE_STOP_RETRY_S)
-        if problems:
-            self.event("fault", "safe state NOT reached: " + "; ".join(problems.values()))
-            self.last_error = "; ".join(problems.values())
+        result = safe_stop(self.lab.table, self.lab.chamber, self.p.remount_c, self.lab.clock,
+                           on_retry=lambda problems: self.event(
+                               "fault", "safe state not reached yet, trying again: " + "; ".join(problems)))
+        if not result.reached:
+            self.event("fault", "safe state NOT reached: " + "; ".join(result.problems))
+            self.last_error = "; ".join(result.problems)
             self.fail()
             return
         self.event("info", f"lab in safe state: table stopped, chamber to {self.p.remount_c} C")

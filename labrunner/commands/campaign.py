@@ -386,17 +386,21 @@ def cmd_abort(args: argparse.Namespace) -> int:
 def _safe_state_directly(info: Any) -> None:
     from labrunner.lab import lab_config_from_dict, real_lab
     from labrunner.procedure import parse_procedure
+    from labrunner.runner.safe_stop import safe_stop
 
     procedure = parse_procedure(info.procedure_text, "stored procedure")
     lab = real_lab(lab_config_from_dict(info.lab_config, "stored lab configuration"),
                    max_rate_dps=procedure.model.safety.max_rate_dps)
     try:
-        lab.table.connect()
-        lab.table.stop()
-        lab.chamber.connect()
-        lab.chamber.set_setpoint(procedure.model.remount_c)
+        result = safe_stop(lab.table, lab.chamber, procedure.model.remount_c, lab.clock, connect=True,
+                           on_retry=lambda problems: print("safe state not reached yet, trying again: "
+                                                           + "; ".join(problems), file=sys.stderr))
     finally:
         lab.close()
+    if not result.reached:
+        err = UserError("safe state NOT reached: " + "; ".join(result.problems))
+        err.exit_code = 1
+        raise err
 
 
 # --- export ------------------------------------------------------------------------------------------
