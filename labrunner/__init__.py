@@ -1,5 +1,43 @@
-"""labrunner: thermal-calibration campaigns for MEMS IMUs."""
+"""labrunner: thermal-calibration campaigns for MEMS IMUs.
 
+The Python API (docs/api.md) is `labrunner.api`, re-exported here: `labrunner.run`, `resume`,
+`abort`, `status`, `open`, `fit`, `diagnose`, ... It is loaded on first use, so `import labrunner`
+stays cheap (the CLI's start-up and `labrunner --version` do not pay for pandas or the sims).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING, Any
+
+from labrunner.errors import UserError
 from labrunner.version import __version__
 
-__all__ = ["__version__"]
+# labrunner's records go nowhere until the application configures logging (labrunner.logs.configure,
+# called by the CLI); without a handler, Python's last-resort one would print warnings to stderr.
+logging.getLogger(__name__).addHandler(logging.NullHandler())
+
+if TYPE_CHECKING:
+    from labrunner.api import (
+        AbortResult, Campaign, CampaignStatus, Database, Event, NextStep, Progress, RunResult, Session, abort,
+        diagnose, fit, load_data, open, resume, run, start_resume, start_run, status,
+    )
+
+_API = (
+    "AbortResult", "Campaign", "CampaignStatus", "Database", "Event", "NextStep", "Progress", "RunResult", "Session",
+    "abort", "diagnose", "fit", "load_data", "open", "resume", "run", "start_resume", "start_run", "status",
+)
+
+__all__ = ["UserError", "__version__", *_API]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _API:
+        from labrunner import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'labrunner' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API))

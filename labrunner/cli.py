@@ -9,6 +9,7 @@ from collections.abc import Sequence
 
 from labrunner import __version__
 from labrunner.errors import UserError
+from labrunner.logs import LEVELS, configure
 
 # Modules with `register(subparsers)`; each sets `func(args) -> int` on its parser.
 COMMAND_MODULES = (
@@ -23,6 +24,10 @@ COMMAND_MODULES = (
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="labrunner", description=__doc__)
     parser.add_argument("--version", action="version", version=f"labrunner {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log more on stderr: -v INFO, -vv DEBUG (wire traffic)")
+    parser.add_argument("--log-level", type=str.upper, choices=LEVELS, default=None, metavar="LEVEL",
+                        help=f"log level ({', '.join(LEVELS)}; default WARNING; overrides -v)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         try:
@@ -35,9 +40,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def log_level(args: argparse.Namespace) -> str:
+    """--log-level, else -v (INFO) / -vv (DEBUG), else WARNING."""
+    if args.log_level:
+        return str(args.log_level)
+    return {0: "WARNING", 1: "INFO"}.get(args.verbose, "DEBUG")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    configure(log_level(args))
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

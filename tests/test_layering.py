@@ -39,10 +39,13 @@ ROOMS: dict[str, str] = {
     "labrunner.fault_plan": "orchestration",
     "labrunner.lab": "composition",
     "labrunner.api": "composition",
+    "labrunner.campaign_session": "composition",
+    "labrunner.sim_config": "composition",
     "labrunner.commands": "command",
     "labrunner.cli": "command",
     "labrunner.__main__": "command",
     "labrunner.logs": "base",
+    "labrunner.fault_kinds": "base",
     "labrunner.version": "base",
     "labrunner": "composition",  # the package's __init__: the public Python API
 }

@@ -9,14 +9,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from labrunner.data_source import load_campaign_data
+from labrunner import api
 from labrunner.errors import UserError
 
 from .evaluation import SPLITS
-from .export import save_model, write_c_header
-from .fit import FitOptions, FitResult, fit_campaign
+from .fit import FitOptions
 from .rbf_model import VARIANTS
-from .outputs import write_outputs
 from .report import summary_markdown
 
 
@@ -72,14 +70,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
     progress(f"loading {args.data}")
-    data = load_campaign_data(args.data, args.campaign)
-    result = fit_campaign(data.frame, options, provenance=data.provenance, progress=progress)
-    if data.provenance.get("kind") == "store" and not args.no_store:
-        from labrunner.store import Store
-
-        with Store.open_existing(args.data) as store:
-            fit_id = store.save_fit(int(data.provenance["campaign_id"]), result.to_dict(), result.provenance)
-        progress(f"fit {fit_id} stored in {args.data} (campaign {data.provenance['campaign_id']})")
+    result = api.fit(args.data, campaign=args.campaign, options=options, save=not args.no_store, progress=progress)
     text = summary_markdown(result)
     if args.json != "-":
         print(text)
@@ -91,6 +82,6 @@ def run(args: argparse.Namespace) -> int:
             Path(args.json).write_text(payload)
             progress(f"wrote {args.json}")
     if args.out:
-        written = write_outputs(result, Path(args.out), text)
+        written = api.write_fit(result, args.out, text)
         progress(f"wrote {', '.join(written)} in {args.out}")
     return 0

@@ -44,7 +44,7 @@ def cmd_check(args: argparse.Namespace) -> int:
               f"({c.profile if isinstance(c.profile, str) else 'custom profile'}), table {cfg.table.port}, "
               f"IMU {cfg.imu.port} at {cfg.imu.rate_hz:g} Hz")
     if args.sim_config:
-        from labrunner.commands.sim import load_sim_config
+        from labrunner.sim_config import load_sim_config
 
         sim = load_sim_config(args.sim_config)
         print(f"{args.sim_config}: sim configuration is valid (seed {sim.seed}, "

@@ -9,11 +9,10 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 from labrunner.clock import ScaledClock
 from labrunner.errors import UserError
-from labrunner.yaml_config import ConfigError, load_yaml, read_text
+from labrunner.sim_config import load_sim_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,46 +37,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
     serve.set_defaults(func=serve_command)
     sim.set_defaults(func=lambda args: (sim.print_help(), 2)[1])
-
-
-def sim_config_dict(path: Path | None) -> dict[str, Any]:
-    """Read and validate a sim configuration file; returns its mapping (stored with dry-run campaigns)."""
-    from labrunner.fault_plan import Fault
-    from labrunner.sims.world import SimLabConfig
-
-    if path is None:
-        return {}
-    data, positions = load_yaml(read_text(path), str(path))
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError([f"{path}:1: a sim configuration must be a mapping"])
-    try:
-        SimLabConfig.from_dict(data)
-        faults = data.get("faults") or {}
-        if not isinstance(faults, dict):
-            raise ValueError("faults must be a mapping")
-        for key in ("schedule", "random"):
-            items = faults.get(key) or []
-            if not isinstance(items, list):
-                raise ValueError(f"faults.{key} must be a list")
-            for i, item in enumerate(items):
-                if not isinstance(item, dict):
-                    raise ValueError(f"faults.{key}[{i}] must be a mapping with at_s, kind, duration_s or count")
-                try:
-                    Fault(**item)
-                except TypeError as exc:
-                    raise ValueError(f"faults.{key}[{i}]: {exc}") from None
-    except (ValueError, TypeError, OSError) as exc:
-        line = positions.get(("faults",), 1) if "fault" in str(exc) else 1
-        raise ConfigError([f"{path}:{line}: {exc}"]) from None
-    return data
-
-
-def load_sim_config(path: Path | None) -> Any:
-    from labrunner.sims.world import SimLabConfig
-
-    return SimLabConfig.from_dict(sim_config_dict(path))
 
 
 def serve_command(args: argparse.Namespace) -> int:

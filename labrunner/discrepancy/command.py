@@ -7,9 +7,9 @@ import json
 import sys
 from pathlib import Path
 
+from labrunner import api
 from labrunner.errors import UserError
 
-from .diagnose import DiagnoseOptions, diagnose
 from .terms import CAUSE_ORDER
 
 
@@ -33,16 +33,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def handler(args: argparse.Namespace) -> int:
-    from labrunner.data_source import load_campaign_data
-
     json_out = Path(args.json_out)
     model_out = Path(args.model) if args.model else json_out.with_suffix(".imu_model.json")
     for target in (json_out, model_out):
         if not target.parent.exists():
             raise UserError(f"cannot write {target}: directory {target.parent} does not exist")
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip()) if args.causes else None
-    data = load_campaign_data(args.data, args.campaign, include_monitor=True)  # ramps and soaks too
-    result = diagnose(data.frame, DiagnoseOptions(min_evidence=args.min_evidence, causes=causes))
+    data = api.load_data(args.data, campaign=args.campaign, include_monitor=True)  # ramps and soaks too
+    result = api.diagnose(data, min_evidence=args.min_evidence, causes=causes)
 
     result.model.save(model_out)
     result.model_path = str(model_out)

@@ -1,0 +1,426 @@
+"""Composition of a campaign run: lab, store and runner put together, run, and taken apart.
+
+`start_run` and `start_resume` build a `Session` (the store opened, the campaign row written or
+found, the lab connected, the runner constructed); `Session.execute` runs it and returns a
+`RunResult`. `abort_campaign` ends a campaign from outside: it asks the running process to stop,
+or, when none is running, brings a real lab to its safe state itself. `labrunner.api` and the
+command line both go through here, so a campaign is composed in one place.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from labrunner.errors import UserError
+from labrunner.sim_config import has_fault_plan, sim_config_dict
+
+if TYPE_CHECKING:
+    from labrunner.lab import Lab, LabConfig
+    from labrunner.procedure import Procedure, Step
+    from labrunner.sequencer import CampaignRunner
+    from labrunner.store import Store
+
+log = logging.getLogger(__name__)
+
+EXIT_CODES = {"done": 0, "paused": 3, "aborted": 4, "failed": 1}
+AUTO_RESUME_S = 900.0  # a rehearsed operator resumes a fault pause after 15 minutes (lab time)
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Where a running campaign is, as passed to a `progress` callback after every transition and record."""
+
+    steps_done: int
+    steps_total: int
+    state: str
+    step: Step | None  # the step being worked on (None when all are recorded)
+    lab_time_s: float
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """How a run or resume ended."""
+
+    campaign_id: int
+    db: Path
+    state: str  # done, paused, aborted, failed
+    exit_code: int  # the CLI's: 0 done, 3 paused, 4 aborted, 1 failed
+    steps_done: int
+    steps_total: int
+    steps_recorded: int = 0  # in this session
+    samples: int = 0  # in this session
+    steps_rerecorded: int = 0
+    faults: int = 0
+    recoveries: int = 0
+    lab_time_s: float = 0.0
+    wall_s: float = 0.0
+    reason: str | None = None  # why it did not finish (the last error), if it did not
+    faults_injected: int | None = None  # dry runs with a fault plan
+    faults_by_kind: dict[str, int] = field(default_factory=dict)
+    auto_resumes: int = 0
+    fit_summary: str | None = None  # the end-of-run fit's summary (markdown), or why it failed
+    fit_ok: bool = False
+    fit_out: Path | None = None  # where the fitted models were written
+    already_done: bool = False  # resume of a complete campaign: nothing was run
+
+    @property
+    def ok(self) -> bool:
+        return self.state == "done"
+
+    @property
+    def resumable(self) -> bool:
+        return self.state in ("paused", "aborted", "failed")
+
+
+ProgressCallback = Callable[[Progress], None]
+
+
+class Session:
+    """One campaign ready to run: its store, lab and runner. Close it (or use `with`)."""
+
+    def __init__(self, store: Store, campaign_id: int, procedure: Procedure, *, mode: str, db: Path,
+                 lab: Lab | None = None, runner: CampaignRunner | None = None, status_before: str = "running",
+                 next_step: int | None = 0) -> None:
+        self.store = store
+        self.campaign_id = campaign_id
+        self.procedure = procedure
+        self.mode = mode  # "sim" or "lab"
+        self.db = db
+        self.lab = lab
+        self.runner = runner
+        self.status_before = status_before
+        self.next_step = next_step
+
+    @property
+    def already_done(self) -> bool:
+        return self.runner is None
+
+    @property
+    def steps_total(self) -> int:
+        return len(self.procedure.steps())
+
+    @property
+    def planned_samples(self) -> int:
+        return self.steps_total * self.procedure.frames_per_record
+
+    @property
+    def estimated_lab_s(self) -> float:
+        return self.procedure.estimated_duration_s()
+
+    def request_pause(self, reason: str = "pause requested") -> None:
+        if self.runner is not None:
+            self.runner.request_pause(reason)
+
+    def request_abort(self, reason: str = "abort requested") -> None:
+        if self.runner is not None:
+            self.runner.request_abort(reason)
+
+    def execute(self, progress: ProgressCallback | None = None, *, handle_signals: bool = False) -> RunResult:
+        """Run to done, paused, aborted or failed. With `handle_signals`, Ctrl-C pauses at the next
+        safe point, a second Ctrl-C (or SIGTERM) aborts to the safe state (main thread only)."""
+        runner = self.runner
+        if runner is None:
+            total = self.steps_total
+            return RunResult(campaign_id=self.campaign_id, db=self.db, state="done", exit_code=0, steps_done=total,
+                             steps_total=total, already_done=True)
+        if progress is not None:
+            runner.progress = lambda r: progress(_snapshot(r))
+        started = time.time()
+        try:
+            with _signals(self, handle_signals):
+                final = runner.run()
+        finally:
+            self._close_lab()
+        log.info("campaign %d: %s after %.1f s wall", self.campaign_id, final, time.time() - started)
+        return _result(runner, self.db, final, time.time() - runner.stats.started_wall)
+
+    def _close_lab(self) -> None:
+        if self.lab is not None:
+            self.lab.close()
+            self.lab = None
+
+    def close(self) -> None:
+        self._close_lab()
+        self.store.close()
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def _snapshot(runner: CampaignRunner) -> Progress:
+    return Progress(steps_done=runner.done_steps(), steps_total=len(runner.plan), state=str(runner.state),
+                    step=runner.current_step(), lab_time_s=runner.t)
+
+
+def _result(runner: CampaignRunner, db: Path, final: str, wall_s: float) -> RunResult:
+    s = runner.stats
+    inj = getattr(runner, "fault_injector", None)
+    return RunResult(
+        campaign_id=runner.cid, db=db, state=final, exit_code=EXIT_CODES[final], steps_done=runner.done_steps(),
+        steps_total=len(runner.plan), steps_recorded=s.steps_recorded, samples=s.samples,
+        steps_rerecorded=s.steps_rerecorded, faults=s.faults, recoveries=s.recoveries, lab_time_s=runner.t,
+        wall_s=wall_s, reason=runner.last_error if final != "done" else None,
+        faults_injected=inj.injected if inj is not None else None,
+        faults_by_kind=dict(inj.by_kind) if inj is not None else {}, auto_resumes=runner.auto_resumes,
+        fit_summary=runner.fit_summary, fit_ok=runner.fit_ok,
+        fit_out=Path(runner.fit_out_dir) if runner.fit_ok and runner.fit_out_dir else None)
+
+
+@contextmanager
+def _signals(session: Session, enabled: bool) -> Iterator[None]:
+    """Ctrl-C: pause; Ctrl-C again: abort to the safe state; SIGTERM: abort. Restored afterwards."""
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    hits = {"n": 0}
+
+    def on_sigint(_sig: int, _frame: Any) -> None:
+        hits["n"] += 1
+        if hits["n"] == 1:
+            print("\nlabrunner: pausing at the next safe point (Ctrl-C again to abort to a safe state)",
+                  file=sys.stderr, flush=True)
+            session.request_pause("Ctrl-C: pause")
+        else:
+            print("\nlabrunner: aborting: bringing the lab to its safe state", file=sys.stderr, flush=True)
+            session.request_abort("Ctrl-C twice: abort")
+
+    previous = signal.signal(signal.SIGINT, on_sigint), signal.signal(
+        signal.SIGTERM, lambda *_: session.request_abort("SIGTERM: abort"))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous[0])
+        signal.signal(signal.SIGTERM, previous[1])
+
+
+# --- composing a lab -------------------------------------------------------------------------------------
+
+
+def _sim_lab(procedure: Procedure, sim_dict: dict[str, Any], start_t: float, orientation: str | None) -> Lab:
+    from labrunner.lab import simulated_lab
+    from labrunner.sims.world import SimLabConfig
+
+    try:
+        config = SimLabConfig.from_dict(sim_dict)
+    except (ValueError, TypeError, OSError) as exc:
+        raise UserError(f"sim configuration: {exc}") from None
+    return simulated_lab(max_rate_dps=procedure.model.safety.max_rate_dps, sim_config=config, start_t=start_t,
+                         orientation=orientation)
+
+
+def _lab_config(lab: str | Path | LabConfig) -> LabConfig:
+    from labrunner.lab import LabConfig, load_lab_config
+
+    if isinstance(lab, LabConfig):
+        return lab
+    return load_lab_config(lab)[0]
+
+
+def _runner(procedure: Procedure, lab: Lab, store: Store, cid: int, fit_out: Path, sim_dict: dict[str, Any] | None,
+            auto_resume_s: float | None) -> CampaignRunner:
+    from labrunner.sequencer import CampaignRunner
+
+    runner = CampaignRunner(procedure, lab, store, cid, fit_out_dir=fit_out, auto_resume_s=auto_resume_s)
+    if lab.sim is not None and has_fault_plan(sim_dict):
+        # Static plant faults (faults.chamber) are applied by the simulated lab itself.
+        from labrunner.fault_plan import FaultInjector
+
+        FaultInjector.attach(runner, lab, sim_dict["faults"])  # type: ignore[index]
+    return runner
+
+
+def fit_dir(db: Path, given: str | Path | None) -> Path:
+    """Where the end-of-run fit writes its models: given, or next to the database (<db>_fit/)."""
+    return Path(given) if given is not None else db.with_name(db.stem + "_fit")
+
+
+# --- run, resume ---------------------------------------------------------------------------------------------
+
+
+def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | Path | LabConfig = "sim",
+              seed: int | None = None, faults: int = 0, sim_config: str | Path | dict[str, Any] | None = None,
+              fit_out: str | Path | None = None, auto_resume: bool = True) -> Session:
+    """A new campaign of `procedure` in `db`, on the simulated lab (`lab="sim"`) or a real one."""
+    from labrunner.lab import lab_config_from_dict, real_lab
+    from labrunner.procedure import Procedure, load_procedure
+    from labrunner.store import Store
+
+    db = Path(db)
+    if isinstance(procedure, Procedure):
+        proc, proc_path = procedure, None
+    else:
+        proc, proc_path = load_procedure(procedure), str(Path(procedure).resolve())
+    sim = isinstance(lab, str) and lab == "sim"
+    sim_dict: dict[str, Any] | None = None
+    if sim:
+        sim_dict = sim_config_dict(sim_config)
+        if seed is not None:
+            sim_dict["seed"] = seed
+        if faults:
+            from labrunner.fault_plan import random_fault_plan
+
+            sim_dict["faults"] = {"random": random_fault_plan(proc, faults, sim_dict.get("seed", 0))}
+        the_lab = _sim_lab(proc, sim_dict, 0.0, proc.steps()[0].orientation)
+        lab_dict = the_lab.config.model_dump()
+    else:
+        if faults:
+            raise UserError("--faults injects faults into the simulated lab: use it with --sim")
+        lab_dict = _lab_config(lab).model_dump()
+        the_lab = real_lab(lab_config_from_dict(lab_dict), max_rate_dps=proc.model.safety.max_rate_dps)
+    try:
+        store = Store.create(db)
+    except Exception:
+        the_lab.close()
+        raise
+    try:
+        cid = store.new_campaign(name=proc.name, procedure_text=proc.text, procedure_path=proc_path,
+                                 procedure_sha256=proc.sha256, lab_config=lab_dict, mode="sim" if sim else "lab",
+                                 sim_config=sim_dict, clock_t0=the_lab.clock.now(), plan=proc.steps())
+        auto = AUTO_RESUME_S if (sim and has_fault_plan(sim_dict) and auto_resume) else None
+        runner = _runner(proc, the_lab, store, cid, fit_dir(db, fit_out), sim_dict, auto)
+    except BaseException:
+        the_lab.close()
+        store.close()
+        raise
+    log.info("campaign %d '%s' in %s: %d steps (%s)", cid, proc.name, db, len(runner.plan), "sim" if sim else "lab")
+    return Session(store, cid, proc, mode="sim" if sim else "lab", db=db, lab=the_lab, runner=runner)
+
+
+def process_alive(pid: int | None, host: str | None) -> bool:
+    """Whether the process that last ran a campaign is still alive (on this host)."""
+    if not pid or host != os.uname().nodename:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path | LabConfig | None = None,
+                 fit_out: str | Path | None = None) -> Session:
+    """Continue a paused, aborted, failed or killed campaign from its first missing step. A complete
+    campaign gives a session with nothing to run (`already_done`)."""
+    from labrunner.lab import lab_config_from_dict, real_lab
+    from labrunner.procedure import parse_procedure
+    from labrunner.store import Store
+
+    db = Path(db)
+    store = Store.open_existing(db)
+    the_lab: Lab | None = None
+    try:
+        cid = store.resolve(campaign)
+        info = store.campaign(cid)
+        procedure = parse_procedure(info.procedure_text, f"{db} (campaign {cid} procedure)")
+        if info.status == "done":
+            return Session(store, cid, procedure, mode=info.mode, db=db, status_before="done", next_step=None)
+        if info.status == "running" and process_alive(info.pid, info.host):
+            raise UserError(f"campaign {cid} is running (process {info.pid}); use labrunner status or abort")
+        nxt = store.next_step(cid)
+        orientation = procedure.steps()[nxt].orientation if nxt is not None else None
+        if info.mode == "sim":
+            # The simulated lab starts again a minute after the campaign's last recorded moment
+            # (after a kill the heartbeat's clock_last may lag behind the last event).
+            last = max(info.clock_last, info.clock_t0 + store.last_time(cid))
+            the_lab = _sim_lab(procedure, info.sim_config or {}, last + 60.0, orientation)
+        else:
+            config = _lab_config(lab) if lab is not None else lab_config_from_dict(info.lab_config,
+                                                                                  "stored lab configuration")
+            the_lab = real_lab(config, max_rate_dps=procedure.model.safety.max_rate_dps)
+        faulty = info.mode == "sim" and has_fault_plan(info.sim_config)
+        runner = _runner(procedure, the_lab, store, cid, fit_dir(db, fit_out), info.sim_config,
+                         AUTO_RESUME_S if faulty else None)
+    except BaseException:
+        if the_lab is not None:
+            the_lab.close()
+        store.close()
+        raise
+    log.info("resuming campaign %d (%s) at step %s", cid, info.status, nxt)
+    return Session(store, cid, procedure, mode=info.mode, db=db, lab=the_lab, runner=runner,
+                   status_before=info.status, next_step=nxt)
+
+
+# --- abort ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AbortResult:
+    """What `abort` did: `outcome` is "already" (done or aborted before), "requested" (the running
+    process was asked and answered with `status`), or "direct" (none was running: made safe here)."""
+
+    campaign_id: int
+    outcome: str
+    status_before: str
+    status: str
+
+    @property
+    def ok(self) -> bool:
+        return self.outcome != "requested" or self.status in ("aborted", "failed", "paused")
+
+
+def abort_campaign(db: str | Path, *, campaign: int | None = None, wait_s: float = 60.0,
+                   notify: Callable[[str], None] | None = None) -> AbortResult:
+    """Bring a campaign's lab to its safe state and end the run (resumable afterwards).
+
+    If a process is running the campaign, it is asked through the store and given `wait_s` to
+    stop safely; otherwise a real lab is made safe from here (`runner.safe_stop`, with retries).
+    `notify` receives progress messages ("waiting for process ...", retries)."""
+    from labrunner.store import Store
+
+    say = notify or (lambda _msg: None)
+    with Store.open_existing(db) as store:
+        cid = store.resolve(campaign)
+        info = store.campaign(cid)
+        if info.status in ("done", "aborted"):
+            return AbortResult(cid, "already", info.status, info.status)
+        if info.status == "running" and process_alive(info.pid, info.host):
+            store.request(cid, "abort")
+            say(f"abort requested; waiting for process {info.pid} to bring the lab to its safe state...")
+            deadline = time.time() + wait_s
+            while time.time() < deadline:
+                time.sleep(0.2)
+                if store.campaign(cid).status != "running":
+                    break
+            return AbortResult(cid, "requested", info.status, store.campaign(cid).status)
+        # Nobody is running it: make the lab safe ourselves (a real lab), then mark it aborted.
+        if info.mode == "lab":
+            _safe_state_directly(info, say)
+        store.event(cid, info.clock_last - info.clock_t0, "operator", "aborted by labrunner abort (no process running)")
+        store.set_status(cid, "aborted", pid=None)
+        log.info("campaign %d aborted with no process running", cid)
+        return AbortResult(cid, "direct", info.status, "aborted")
+
+
+def _safe_state_directly(info: Any, say: Callable[[str], None]) -> None:
+    from labrunner.lab import lab_config_from_dict, real_lab
+    from labrunner.procedure import parse_procedure
+    from labrunner.runner.safe_stop import safe_stop
+
+    procedure = parse_procedure(info.procedure_text, "stored procedure")
+    lab = real_lab(lab_config_from_dict(info.lab_config, "stored lab configuration"),
+                   max_rate_dps=procedure.model.safety.max_rate_dps)
+    try:
+        result = safe_stop(lab.table, lab.chamber, procedure.model.remount_c, lab.clock, connect=True,
+                           on_retry=lambda problems: say("safe state not reached yet, trying again: "
+                                                         + "; ".join(problems)))
+    finally:
+        lab.close()
+    if not result.reached:
+        err = UserError("safe state NOT reached: " + "; ".join(result.problems))
+        err.exit_code = 1
+        raise err

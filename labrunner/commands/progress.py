@@ -1,0 +1,34 @@
+"""The progress bar of `labrunner run` and `resume` (tqdm on stderr, with the state, step and lab time)."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+from labrunner.api import Progress
+
+
+class ProgressBar:
+    """A `progress` callback for `labrunner.run`/`resume`; `quiet` makes it do nothing."""
+
+    def __init__(self, total: int, quiet: bool) -> None:
+        self.bar: Any = None
+        if not quiet:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, unit="step", file=sys.stderr, dynamic_ncols=True, mininterval=0.5,
+                            smoothing=0.05, bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} steps "
+                                                       "[{elapsed}<{remaining}] {postfix}")
+
+    def __call__(self, p: Progress) -> None:
+        if self.bar is None:
+            return
+        if p.steps_done > self.bar.n:
+            self.bar.update(p.steps_done - self.bar.n)
+        step = p.step
+        where = f"{step.orientation} {step.temperature_c:+g}C {step.rate_dps:+g}dps" if step else ""
+        self.bar.set_postfix_str(f"{p.state:13s} {where} lab time {p.lab_time_s / 3600:6.2f} h", refresh=False)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
