@@ -18,8 +18,9 @@ from .errors import InstrumentError, InstrumentProtocolError, InstrumentRefused,
 from .protocols import Identity
 from .retry import Sleep, with_retry
 
-# pymodbus logs every failed request itself; this driver reports them as errors that say more.
-logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+# Wire traffic (register addresses and values) at DEBUG, connects at INFO. pymodbus' own logging
+# is left alone: the application quiets it (labrunner.logs.configure), not a driver at import.
+log = logging.getLogger(__name__)
 
 # Plausible air temperatures: anything else read from the PV register is garbage, not a reading.
 PLAUSIBLE_C = (-100.0, 300.0)
@@ -69,6 +70,7 @@ class ModbusChamber:
         self._sleep = sleep
         self.on_retry = on_retry
         self._client: ModbusTcpClient | ModbusSerialClient | None = None
+        self._connects = 0  # successful connects: a second one is a reconnect
         self._range: tuple[float, float] | None = None
         self._lock = threading.RLock()
 
@@ -93,7 +95,11 @@ class ModbusChamber:
                 reason = "connection refused or no answer"
             if not ok:
                 self._client.close()
+                log.debug("%s: cannot connect to %s: %s", self.name, self.address, reason)
                 raise InstrumentTimeout(self.name, self.address, f"cannot connect: {reason}")
+            self._connects += 1
+            log.info("%s: %s %s (profile %s)", self.name, "reconnected to" if self._connects > 1 else "connected to",
+                     self.address, self.profile.name)
         return self._client
 
     def connect(self) -> None:
@@ -106,6 +112,7 @@ class ModbusChamber:
             if self._client is not None:
                 self._client.close()
                 self._client = None
+                log.debug("%s: closed %s", self.name, self.address)
 
     # --- register access ----------------------------------------------------------------
 
@@ -116,14 +123,18 @@ class ModbusChamber:
                 response = fn(client)
             except ModbusException as exc:
                 client.close()  # a half-read reply leaves the stream out of step: start clean
+                log.debug("%s: %s at register %d: no valid answer (%s); connection closed", self.name, op,
+                          register, exc)
                 raise InstrumentTimeout(self.name, self.address, f"{op}: no valid answer ({exc})",
                                         register=register) from None
             except OSError as exc:
                 client.close()
+                log.debug("%s: %s at register %d: link error (%s); connection closed", self.name, op, register, exc)
                 raise InstrumentTimeout(self.name, self.address, f"{op}: link error ({exc})", register=register) from None
             if response.isError():
                 code = getattr(response, "exception_code", None)
                 text = MODBUS_EXCEPTIONS.get(code, f"code {code}")
+                log.debug("%s: %s at register %d: Modbus exception %s (%s)", self.name, op, register, code, text)
                 if code in TRANSIENT_EXCEPTIONS:
                     raise InstrumentError(self.name, self.address, f"{op}: Modbus exception {code} ({text})",
                                           register=register)
@@ -142,9 +153,11 @@ class ModbusChamber:
         if len(words) != count:
             raise InstrumentProtocolError(self.name, self.address, f"asked for {count} register(s), got {len(words)}",
                                           register=register)
+        log.debug("%s: read %d register(s) at %d -> %s", self.name, count, register, words)
         return words
 
     def write_words(self, register: int, words: list[int]) -> None:
+        log.debug("%s: write %d register(s) at %d <- %s", self.name, len(words), register, words)
         if len(words) == 1:
             self._transact(register, "write register", lambda c: c.write_register(
                 register, words[0], device_id=self.addr.device_id))
@@ -191,6 +204,8 @@ class ModbusChamber:
             err = InstrumentProtocolError(self.name, self.address, f"process value reads {value!r}, not a plausible "
                                           "temperature (sensor break?)", register=self.profile.process_value)
             if attempt < self.retries:
+                log.info("%s: process value reads %r; reading again (%d of %d)", self.name, value, attempt + 1,
+                         self.retries)
                 if self.on_retry:
                     self.on_retry(attempt + 1, err)
                 self._sleep(self.backoff_s * (2 ** attempt))

@@ -11,6 +11,7 @@ reopened automatically when it drops. Reading and parsing happen under one lock,
 
 from __future__ import annotations
 
+import logging
 import select
 import threading
 import time
@@ -25,6 +26,10 @@ from .protocols import ImuRecord, ImuSample
 from .serial_link import close_quietly, open_serial
 
 READ_SIZE = 1 << 16
+
+# Connects, link losses and resynchronisations are logged; single frames (50 Hz) never are:
+# corrupt stretches and duplicates at DEBUG as they happen, each record's counts at DEBUG.
+log = logging.getLogger(__name__)
 
 
 class SerialImu:
@@ -60,6 +65,7 @@ class SerialImu:
         with self._cond:
             if self._ser is None:
                 self._ser = open_serial(self.address, baudrate=self.baudrate, timeout_s=0.0, instrument=self.name)
+                log.info("%s: stream open at %s (%g Hz expected)", self.name, self.address, self.rate_hz)
             if not self._running:
                 self._running = True
                 self._thread = threading.Thread(target=self._reader, name=f"{self.name}-reader", daemon=True)
@@ -73,6 +79,9 @@ class SerialImu:
         with self._cond:
             close_quietly(self._ser)
             self._ser = None
+        log.debug("%s: closed: %d frames, %d bytes, %d corrupt stretch(es), %d duplicate(s), %d link drop(s)",
+                  self.name, self.frames_received, self.bytes_received, self.corrupt, self.duplicates,
+                  self.link_drops)
 
     @property
     def corrupt(self) -> int:
@@ -93,6 +102,7 @@ class SerialImu:
                 self._ser = None
                 self.link_drops += 1
                 self._decoder.drop_partial()  # a new connection starts mid-stream
+                log.warning("%s at %s: link lost (%s); reopening", self.name, self.address, exc)
                 self._event("imu_link_lost", f"{self.name} at {self.address}: link lost ({exc})")
 
     def _reader(self) -> None:
@@ -106,6 +116,7 @@ class SerialImu:
                     continue
                 with self._cond:
                     self._ser = fresh
+                log.info("%s at %s: link restored", self.name, self.address)
                 self._event("imu_link_restored", f"{self.name} at {self.address}: link restored")
                 continue
             try:
@@ -138,10 +149,16 @@ class SerialImu:
     def _ingest(self, data: bytes) -> None:
         self.bytes_received += len(data)
         dec = self._decoder.feed(data)
+        if dec.corrupt:
+            log.debug("%s: resynchronised after %d corrupt stretch(es) (%d so far)", self.name, dec.corrupt,
+                      self._decoder.corrupt)
         if len(dec):
             counters = unwrap_counter(dec.counter, self._last)
             fresh = counters > (self._last if self._last is not None else -1)
-            self.duplicates += int((~fresh).sum())
+            stale = int((~fresh).sum())
+            if stale:
+                log.debug("%s: %d duplicate or stale frame(s) ignored", self.name, stale)
+            self.duplicates += stale
             if fresh.any():
                 counters = counters[fresh]
                 self._chunks.append((counters, dec.accel[fresh], dec.gyro[fresh], dec.temp[fresh]))
@@ -162,6 +179,7 @@ class SerialImu:
 
     def restart_stream(self) -> None:
         """Forget buffered frames and counter history (after the IMU was power-cycled)."""
+        log.debug("%s: stream restarted (IMU power-cycled)", self.name)
         with self._cond:
             self._drain_locked()
             self._chunks.clear()
@@ -220,6 +238,8 @@ class SerialImu:
             counter = np.zeros(0, np.int64)
             accel = gyro = np.zeros((0, 3))
             temp = np.zeros(0)
+        log.debug("%s: record after counter %d: %d of %d frames, %d corrupt stretch(es)", self.name, start,
+                  counter.size, n_frames, corrupt)
         return ImuRecord(counter=counter, accel_g=accel, gyro_dps=gyro, temp_c=temp, expected=n_frames,
                          dropped=n_frames - int(counter.size), corrupt=corrupt,
                          lsb=(ACCEL_LSB_G, GYRO_LSB_DPS, TEMP_LSB_C))

@@ -7,6 +7,7 @@ link is resynchronised, an ERR reply is a refusal and is raised at once.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 import threading
@@ -29,6 +30,9 @@ _ERR = re.compile(r"^ERR (\d+) (.+)$")
 _OK = re.compile(r"^OK$")
 _ANY = re.compile(r"^.*$")
 
+# Every line sent and received at DEBUG; (re)opening the line at INFO.
+log = logging.getLogger(__name__)
+
 
 class SerialRateTable:
     """A rate table on a serial line (implements `drivers.protocols.RateTable`)."""
@@ -48,6 +52,7 @@ class SerialRateTable:
         self._sleep = sleep
         self.on_retry = on_retry
         self._ser: serial.SerialBase | None = None
+        self._opens = 0  # successful opens: a second one is a reconnect
         self._lock = threading.RLock()
 
     def connect(self) -> None:
@@ -59,6 +64,9 @@ class SerialRateTable:
         if self._ser is None or not self._ser.is_open:
             self._ser = open_serial(self.address, baudrate=self.baudrate, timeout_s=self.timeout_s,
                                     instrument=self.name)
+            self._opens += 1
+            log.info("%s: %s %s at %d baud", self.name, "reopened" if self._opens > 1 else "opened", self.address,
+                     self.baudrate)
         return self._ser
 
     def close(self) -> None:
@@ -81,9 +89,13 @@ class SerialRateTable:
             ser = self._ensure_open()
             try:
                 ser.reset_input_buffer()  # a late reply to an earlier, timed-out command is stale
-                ser.write(command.encode("ascii") + b"\r\n")
+                out = command.encode("ascii") + b"\r\n"
+                log.debug("%s: tx %r", self.name, out)
+                ser.write(out)
                 raw = ser.read_until(b"\r\n")
+                log.debug("%s: rx %r", self.name, raw)
             except (serial.SerialException, OSError) as exc:
+                log.info("%s: link error on %s (%s); the line is reopened", self.name, self.address, exc)
                 self._reset_link()
                 raise InstrumentTimeout(self.name, self.address, f"link error: {exc}", command=command) from None
             if not raw.endswith(b"\r\n"):

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from typing import TypeVar
 
 from .errors import InstrumentError, InstrumentRefused, LimitError
 
+log = logging.getLogger(__name__)
 T = TypeVar("T")
 Sleep = Callable[[float], None]
 
@@ -27,8 +29,13 @@ def with_retry(action: Callable[[], T], *, retries: int, backoff_s: float, sleep
             raise
         except InstrumentError as exc:
             if attempt >= retries:
+                if retries:
+                    log.warning("giving up after %d attempt(s): %s", attempt + 1, exc)
                 raise
+            wait = backoff_s * (2 ** attempt)
+            # A retry is the driver doing its job; the campaign's events record it too.
+            log.info("retry %d of %d in %.3g s after: %s", attempt + 1, retries, wait, exc)
             if on_retry:
                 on_retry(attempt + 1, exc)
-            sleep(backoff_s * (2 ** attempt))
+            sleep(wait)
             attempt += 1

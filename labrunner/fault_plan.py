@@ -9,38 +9,26 @@ them, clears them when they end, and logs every injection as an event row.
 The sequencer's answer (retries, reconnects, re-recording, pause and resume) is
 logged by the sequencer itself.
 
-Kinds:
-  modbus_timeout       the chamber controller stops answering for duration_s
-  modbus_exception     it answers `count` requests with exception 4 (device failure)
-  modbus_busy          ... with exception 6 (busy): transient, retried
-  modbus_drop          every Modbus client connection is dropped
-  modbus_outage        connections dropped and refused for duration_s
-  heater_failure       the heater cannot heat for duration_s (setpoint not reached or held)
-  compressor_failure   the compressor cannot cool for duration_s
-  garbage_pv           the process value reads a sensor-break pattern for duration_s
-  table_fault          the table reports a drive fault (and stops) for duration_s
-  table_silent         the table does not reply for duration_s
-  table_garbage        the table replies line noise for duration_s
-  imu_stall            the IMU sends nothing for duration_s
-  imu_corrupt          the next `count` frames are corrupted on the line
-  imu_gap              the next `count` frames are never sent (counter gap)
-  table_link_drop      the table's serial line disappears for duration_s, then comes back
-  imu_link_drop        the IMU's serial line disappears for duration_s, then comes back
-  heater_stuck         (interlock) the heater is stuck on for duration_s
-  table_overspeed      (interlock) the drive holds 1.6x the commanded rate for duration_s
-  imu_overheat         (interlock) the IMU runs 70 C hotter for duration_s
+The kinds are `labrunner.fault_kinds.FaultKind`; the injector reaches the simulated lab
+only through its `FaultTarget` interface (`apply_fault`, `clear_fault`).
 """
 
 from __future__ import annotations
 
+import logging
 import random
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
-KINDS = ("modbus_timeout", "modbus_exception", "modbus_busy", "modbus_drop", "modbus_outage", "heater_failure",
-         "compressor_failure", "garbage_pv", "table_fault", "table_silent", "table_garbage", "imu_stall", "imu_corrupt",
-         "imu_gap", "table_link_drop", "imu_link_drop", "heater_stuck", "table_overspeed", "imu_overheat")
-INTERLOCK_KINDS = ("heater_stuck", "table_overspeed", "imu_overheat")
+from labrunner.clock import VirtualClock
+from labrunner.fault_kinds import INTERLOCK_KINDS as _INTERLOCKS
+from labrunner.fault_kinds import FaultKind, FaultTarget, fault_kind
+
+_log = logging.getLogger(__name__)  # `log` is the injector's event sink
+
+KINDS: tuple[str, ...] = tuple(k.value for k in FaultKind)
+INTERLOCK_KINDS: tuple[str, ...] = tuple(k for k in KINDS if k in _INTERLOCKS)
 # Random plans draw from the faults a lab meets at night; interlock trips are rehearsed on purpose.
 RANDOM_KINDS = tuple(k for k in KINDS if k not in INTERLOCK_KINDS)
 DURATIONS_S = {  # (low, high) for random plans
@@ -62,8 +50,7 @@ class Fault:
     count: int = 0
 
     def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"unknown fault kind {self.kind!r}; known: {', '.join(KINDS)}")
+        self.kind = fault_kind(self.kind).value  # a plain str, so plans dump to YAML and JSON as written
         if (self.at_s is None) == (self.at_step is None):
             raise ValueError(f"fault {self.kind}: give at_s (campaign time) or at_step (a step index)")
 
@@ -86,8 +73,9 @@ def random_fault_plan(procedure: Any, n: int, seed: int) -> list[dict[str, Any]]
 class FaultInjector:
     """Applies a fault plan to a simulated lab as the (virtual) clock passes the faults' times."""
 
-    def __init__(self, sim: Any, faults: list[Fault], t_zero: float, log: Any = None,
-                 progress: Any = None) -> None:
+    def __init__(self, sim: FaultTarget, faults: list[Fault], t_zero: float,
+                 log: Callable[[str, str, dict[str, Any]], None] | None = None,
+                 progress: Callable[[], int | None] | None = None) -> None:
         self.sim = sim
         self.timed = sorted((f for f in faults if f.at_s is not None), key=lambda f: f.at_s)  # type: ignore[arg-type]
         self.by_step = sorted((f for f in faults if f.at_step is not None), key=lambda f: (f.at_step, f.after_s))
@@ -117,8 +105,11 @@ class FaultInjector:
             runner.store.event(runner.cid, runner.t, kind, message, state=runner.state, step_idx=runner.k,
                                detail=detail)
 
+        if lab.sim is None or not isinstance(lab.clock, VirtualClock):
+            raise ValueError("a fault plan needs the simulated lab of a dry run (a virtual clock)")
         inj = cls(lab.sim, faults, runner.t_zero, log, progress=lambda: runner.k)
         lab.clock.add_listener(inj.on_time)
+        _log.info("fault plan attached: %d fault(s) ahead", inj.pending)
         runner.fault_injector = inj
         return inj
 
@@ -128,6 +119,7 @@ class FaultInjector:
             if t >= end:
                 self.active.remove((end, fault))
                 self._clear(fault)
+                _log.info("fault cleared at t=%.1f s: %s", t, fault.kind)
         due: list[Fault] = []
         while self.timed and self.timed[0].at_s <= t:  # type: ignore[operator]
             due.append(self.timed.pop(0))
@@ -140,7 +132,9 @@ class FaultInjector:
                     self.by_step.remove(f)
                     due.append(f)
         for fault in due:
-            self._apply(fault, clock_now)
+            _log.info("fault injected at t=%.1f s: %s (duration %.1f s, count %d)", t, fault.kind,
+                      fault.duration_s, fault.count)
+            self._apply(fault)
             self.injected += 1
             self.by_kind[fault.kind] = self.by_kind.get(fault.kind, 0) + 1
             if fault.duration_s > 0:
@@ -149,66 +143,8 @@ class FaultInjector:
                 what = f"{fault.duration_s:.0f} s" if fault.duration_s else f"x{fault.count}" if fault.count else ""
                 self.log("injected", f"fault injected: {fault.kind} {what}".rstrip(), asdict(fault))
 
-    # Faults that are a flag on a simulated instrument: set while the fault lasts, cleared after.
-    FLAGS: dict[str, tuple[Any, str]] = {
-        "modbus_timeout": (lambda sim: sim.chamber.faults, "silent"),
-        "garbage_pv": (lambda sim: sim.chamber.faults, "garbage_pv"),
-        "heater_failure": (lambda sim: sim.world.chamber, "heater_failed"),
-        "compressor_failure": (lambda sim: sim.world.chamber, "compressor_failed"),
-        "heater_stuck": (lambda sim: sim.world.chamber, "heater_stuck"),
-        "table_silent": (lambda sim: sim.table.faults, "silent"),
-        "table_garbage": (lambda sim: sim.table.faults, "garbage"),
-    }
-
-    def _apply(self, f: Fault, clock_now: float) -> None:
-        sim, k = self.sim, f.kind
-        if k in self.FLAGS:
-            target, attr = self.FLAGS[k]
-            setattr(target(sim), attr, True)
-        elif k in ("modbus_exception", "modbus_busy"):
-            ch = sim.chamber.faults
-            ch.exception_code, ch.exception_count = (4 if k == "modbus_exception" else 6), max(1, f.count)
-        elif k == "modbus_drop":
-            sim.chamber.drop_connections()
-        elif k == "modbus_outage":
-            sim.chamber.refuse_connections(True)
-        elif k == "table_fault":
-            sim.table.faults.fault = "E17 OVERCURRENT"
-            with sim.world.lock:
-                sim.world.table.command(clock_now, 0.0)  # a faulted drive coasts to rest
-        elif k == "imu_stall":
-            sim.imu.faults.stall_from, sim.imu.faults.stall_until = clock_now, clock_now + f.duration_s
-        elif k == "imu_corrupt":
-            sim.imu.faults.corrupt_frames += max(1, f.count)
-        elif k == "imu_gap":
-            sim.imu.faults.skip_frames += max(1, f.count)
-        elif k in ("table_link_drop", "imu_link_drop"):
-            port = sim.table_port if k == "table_link_drop" else sim.imu_port
-            if hasattr(port, "refusing"):
-                port.refusing = True
-                port.disconnect()
-        elif k == "table_overspeed":
-            with sim.world.lock:
-                sim.world.table.overspeed = 1.6
-                sim.world.table.command(clock_now, sim.world.table.commanded_dps)
-        elif k == "imu_overheat":
-            sim.world.imu_extra_heat_c = 70.0
+    def _apply(self, f: Fault) -> None:
+        self.sim.apply_fault(FaultKind(f.kind), duration_s=f.duration_s, count=f.count)
 
     def _clear(self, f: Fault) -> None:
-        sim, k = self.sim, f.kind
-        if k in self.FLAGS:
-            target, attr = self.FLAGS[k]
-            setattr(target(sim), attr, False)
-        elif k == "modbus_outage":
-            sim.chamber.refuse_connections(False)
-        elif k == "table_fault":
-            sim.table.faults.fault = None
-        elif k in ("table_link_drop", "imu_link_drop"):
-            port = sim.table_port if k == "table_link_drop" else sim.imu_port
-            if hasattr(port, "refusing"):
-                port.refusing = False
-        elif k == "table_overspeed":
-            with sim.world.lock:
-                sim.world.table.overspeed = 1.0
-        elif k == "imu_overheat":
-            sim.world.imu_extra_heat_c = 0.0
+        self.sim.clear_fault(FaultKind(f.kind))

@@ -8,11 +8,13 @@ lab instead and points the same drivers at it.
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -23,6 +25,11 @@ from labrunner.drivers.protocols import Chamber, Imu, Operator, RateTable
 from labrunner.drivers.rate_table import SerialRateTable
 from labrunner.clock import Clock, ScaledClock, VirtualClock, WallClock
 from labrunner.yaml_config import ConfigError, load_model, validate
+
+if TYPE_CHECKING:  # the sims are imported only when a dry run is built
+    from labrunner.sims.lab import SimLab
+
+log = logging.getLogger(__name__)
 
 
 class _Strict(BaseModel):
@@ -108,14 +115,14 @@ class Lab:
     operator: Operator
     clock: Clock
     config: LabConfig
-    sim: Any = None  # the SimLab behind a dry run, if any
+    sim: SimLab | None = None  # the simulated lab behind a dry run, if any
 
     def close(self) -> None:
         for inst in (self.imu, self.table, self.chamber):
             try:
                 inst.close()
-            except Exception:
-                pass
+            except Exception as exc:  # closing a broken link must not hide why the run ended
+                log.debug("closing %s: %s", type(inst).__name__, exc)
         if self.sim is not None:
             self.sim.close()
 
@@ -135,6 +142,8 @@ def build_drivers(config: LabConfig, clock: Clock, *, max_rate_dps: float,
                             retries=t.retries, backoff_s=t.backoff_s, sleep=clock.sleep, on_retry=on_retry)
     i = config.imu
     imu = SerialImu(i.port, rate_hz=i.rate_hz, baudrate=i.baudrate, on_event=on_event)
+    log.info("lab %r: chamber %s (profile %s), rate table %s, IMU %s at %g Hz", config.name, chamber.address,
+             chamber.profile.name, table.address, imu.address, imu.rate_hz)
     return chamber, table, imu
 
 
@@ -151,13 +160,14 @@ def real_lab(config: LabConfig, *, max_rate_dps: float, operator: Operator | Non
 class SimOperator:
     """The dry run's operator: acknowledges at once and remounts the simulated IMU."""
 
-    def __init__(self, sim: Any, clock: Clock, remount_s: float = 300.0) -> None:
+    def __init__(self, sim: SimLab, clock: Clock, remount_s: float = 300.0) -> None:
         self.sim = sim
         self.clock = clock
         self.remount_s = remount_s
 
     def remount(self, orientation: str, prompt: str) -> None:
-        self.sim.world.power_off()
+        log.info("simulated operator: remounting the IMU %s", orientation)
+        self.sim.power_off()
         self.clock.sleep(self.remount_s)  # the time a person takes to open the door and turn the IMU
         self.sim.remount(orientation)
 
@@ -171,7 +181,7 @@ def simulated_lab(*, max_rate_dps: float, sim_config: Any = None, start_t: float
 
     cfg = sim_config or SimLabConfig()
     if orientation is not None:
-        cfg = SimLabConfig(**{**cfg.__dict__, "orientation": orientation})
+        cfg = dataclasses.replace(cfg, orientation=orientation)
     clock = VirtualClock(start=start_t)
     sim = SimLab(cfg, clock, link=link)
     config = lab_config_from_dict(sim.lab_config(), "simulated lab")
@@ -181,7 +191,7 @@ def simulated_lab(*, max_rate_dps: float, sim_config: Any = None, start_t: float
     def barrier() -> None:
         # Dry runs are deterministic: after each advance, wait until the driver has parsed every
         # frame the simulated IMU sent for it (bounded, in case a fault ate the last one).
-        last = sim.imu.last_sent_counter
+        last = sim.last_imu_counter
         if last is not None and isinstance(imu, SerialImu) and imu.link_up:
             imu.wait_counter16(last, 1.0)
 

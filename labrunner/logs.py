@@ -29,6 +29,9 @@ def configure(level: str | int = "WARNING", stream: object = None) -> None:
     root.propagate = False
     for name in _QUIET_LIBRARIES:
         lib = logging.getLogger(name)
-        lib.setLevel(logging.DEBUG if numeric <= logging.DEBUG else max(numeric, logging.ERROR))
+        # pymodbus logs an ERROR for every refused connect and timed-out request, each of which the
+        # chamber driver retries and reports itself: below DEBUG only its CRITICAL records are news.
+        quiet = logging.CRITICAL if name == "pymodbus" else max(numeric, logging.ERROR)
+        lib.setLevel(logging.DEBUG if numeric <= logging.DEBUG else quiet)
         lib.handlers[:] = [handler]
         lib.propagate = False

@@ -17,6 +17,7 @@ connection. Readers return pandas frames.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 from collections.abc import Iterator, Sequence
@@ -37,6 +38,8 @@ from sqlalchemy.exc import DatabaseError, OperationalError
 from labrunner.version import __version__
 from labrunner.campaign_csv import COLUMNS
 from labrunner.errors import UserError
+
+log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
 metadata = MetaData()
@@ -247,6 +250,7 @@ class Store:
         with engine.begin() as conn:
             conn.execute(insert(meta), [{"key": "schema_version", "value": str(SCHEMA_VERSION)},
                                         {"key": "created_by", "value": f"labrunner {__version__}"}])
+        log.info("store %s created (schema %d)", p, SCHEMA_VERSION)
         return cls(engine, p)
 
     @classmethod
@@ -264,6 +268,7 @@ class Store:
         if version is None or int(version) != SCHEMA_VERSION:
             engine.dispose()
             raise UserError(f"{p}: database schema version {version}, this labrunner reads {SCHEMA_VERSION}")
+        log.debug("store %s opened", p)
         return cls(engine, p)
 
     def close(self) -> None:
@@ -298,6 +303,7 @@ class Store:
                 {"campaign_id": cid, "idx": s.index, "orientation": s.orientation, "temperature_c": s.temperature_c,
                  "rate_dps": s.rate_dps, "status": "planned", "attempts": 0} for s in plan])
             conn.execute(insert(control).values(campaign_id=cid, request=None))
+        log.info("campaign %d %r created in %s: %d steps (%s)", cid, name, self.path, len(plan), mode)
         return int(cid)
 
     def campaign_ids(self) -> list[int]:
@@ -334,6 +340,7 @@ class Store:
             values["pid"] = pid
         with self.transaction() as conn:
             conn.execute(update(campaigns).where(campaigns.c.id == campaign_id).values(**values))
+        log.info("campaign %d: status %s", campaign_id, status)
 
     def heartbeat(self, campaign_id: int, clock_now: float) -> None:
         with self.transaction() as conn:
@@ -393,6 +400,9 @@ class Store:
             if _crash_hook is not None:
                 _crash_hook()  # tests: die inside the transaction, before it commits
 
+        log.debug("campaign %d: step %d committed, %d samples (%d dropped, %d corrupt)", campaign_id,
+                  block.step_idx, len(block), dropped, corrupt)
+
     def save_monitor(self, campaign_id: int, block: SampleBlock) -> None:
         with self.transaction() as conn:
             conn.execute(insert(sample_blocks), [self._block_row(campaign_id, block)])
@@ -402,6 +412,7 @@ class Store:
     @staticmethod
     def _event(conn: Connection, campaign_id: int, t_s: float, kind: str, message: str, *, state: str | None = None,
                step_idx: int | None = None, detail: dict[str, Any] | None = None) -> None:
+        log.debug("campaign %d event at t=%.1f s [%s]: %s", campaign_id, t_s, kind, message)
         conn.execute(insert(events).values(
             campaign_id=campaign_id, t_s=t_s, wall=time.time(), kind=kind, state=state, step_idx=step_idx,
             message=message, detail=json.dumps(detail) if detail else None))

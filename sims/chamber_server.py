@@ -11,6 +11,7 @@ connections) are switched through `ChamberFaults`.
 from __future__ import annotations
 
 import asyncio
+import logging
 from dataclasses import dataclass
 
 from pymodbus.constants import ExcCodes
@@ -23,6 +24,8 @@ from labrunner.clock import Clock
 
 from .aio import LoopThread
 from .world import SimWorld
+
+log = logging.getLogger(__name__)
 
 READ_FCS = {3, 4}
 WRITE_FCS = {6, 16}
@@ -67,6 +70,8 @@ class ChamberServer:
         self._device = device
         self._server = self._loop.run(self._start(device, port))
         self.port = self._server.transport.sockets[0].getsockname()[1]
+        log.info("chamber sim: Modbus %s server on %s:%d, profile %s", transport.upper(), host, self.port,
+                 self.profile.name)
 
     async def _start(self, device: SimDevice, port: int) -> ModbusTcpServer | ModbusSerialServer:
         if self.transport == "tcp":
@@ -166,10 +171,13 @@ class ChamberServer:
             for c in conns:
                 c.close()
             return len(conns)
-        return self._loop.run(drop())
+        n = self._loop.run(drop())
+        log.debug("chamber sim: dropped %d client connection(s)", n)
+        return n
 
     def refuse_connections(self, refuse: bool) -> None:
         """Fault: stop listening (connects are refused) and drop clients; or listen again."""
+        log.debug("chamber sim: %s connections", "refusing" if refuse else "accepting")
         async def toggle() -> None:
             if refuse and self._server.transport is not None:
                 for c in list(self._server.active_connections.values()):

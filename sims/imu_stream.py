@@ -9,6 +9,7 @@ frame-counter gaps, and the link dropping (see `ImuFaults`).
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from labrunner.clock import Clock
 from labrunner.imu.model import ModelState
 from .links import SimPort
 from .world import SimWorld
+
+log = logging.getLogger(__name__)
 
 MAX_CHUNK_S = 60.0  # generate long sleeps in pieces to bound memory
 
@@ -64,6 +67,7 @@ class ImuStreamSim:
         w = self.world
         with w.lock:
             if w.run != self._run:  # power-cycled: the counter starts again
+                log.debug("imu sim: run %d starts (power-on), counter from 0", w.run)
                 self._run = w.run
                 self._next_k = 0
                 self.last_sent_counter = None
@@ -94,6 +98,7 @@ class ImuStreamSim:
             n = min(f.skip_frames, ks.size)
             keep[:n] = False
             f.skip_frames -= n
+            log.debug("imu sim: %d frame(s) not sent (counter gap)", n)
         raw = np.frombuffer(data, dtype=np.uint8).reshape(ks.size, FRAME_SIZE).copy()
         intact = keep.copy()
         if f.corrupt_frames:
@@ -103,6 +108,7 @@ class ImuStreamSim:
             raw[idx, pos] ^= self._fault_rng.integers(1, 256, size=n).astype(np.uint8)
             intact[idx] = False
             f.corrupt_frames -= n
+            log.debug("imu sim: %d frame(s) corrupted on the line", n)
         if not keep.all() or not intact.all():
             payload = raw[keep].tobytes()
         else:

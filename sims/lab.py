@@ -8,17 +8,24 @@ sockets or pseudo-terminals.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any
 
 from labrunner.clock import Clock, VirtualClock
+from labrunner.fault_kinds import FaultKind
 
 from .aio import LoopThread
 from .chamber_server import ChamberServer
+from .faults import SimFaults
 from .imu_stream import ImuStreamSim
 from .links import PtyPort, SimPort, TcpSerialPort
 from .table_server import TableServer
 from .world import SimLabConfig, SimWorld
+
+log = logging.getLogger(__name__)
+# Plant faults a sim configuration may switch on from the start (faults.chamber).
+STARTING_FAULTS = {"heater_failed": FaultKind.HEATER_FAILURE, "compressor_failed": FaultKind.COMPRESSOR_FAILURE}
 
 
 @dataclass(frozen=True)
@@ -29,6 +36,8 @@ class SimPorts:
 
 
 class SimLab:
+    """The simulated instruments of one lab; faults go through `apply_fault` / `clear_fault`."""
+
     def __init__(self, config: SimLabConfig, clock: Clock, *, host: str = "127.0.0.1", link: str = "tcp",
                  chamber_transport: str = "tcp", chamber_profile: str = "watlow_f4",
                  ports: SimPorts = SimPorts()) -> None:
@@ -48,22 +57,46 @@ class SimLab:
             clock.add_listener(self.imu.emit_until)
         else:
             self.imu.start_ticker()
-        self._apply_plant_faults(config.faults.get("chamber") or {})
+        self._faults = SimFaults(self.world, clock, self.chamber, self.table, self.imu, self.table_port,
+                                 self.imu_port)
+        self._apply_starting_faults(config.faults.get("chamber") or {})
         self.host = host
         self.link = link
         self.chamber_transport = chamber_transport
         self.chamber_profile = chamber_profile
+        log.info("simulated lab up: chamber %s (%s), table %s, imu %s", self.chamber.url, chamber_transport,
+                 self.table_port.url, self.imu_port.url)
 
-    def _apply_plant_faults(self, spec: dict[str, Any]) -> None:
+    def _apply_starting_faults(self, spec: dict[str, Any]) -> None:
         """Faults present from the start, from the sim configuration (e.g. a failed compressor)."""
-        known = {"heater_failed", "compressor_failed"}
-        unknown = set(spec) - known
+        unknown = set(spec) - set(STARTING_FAULTS)
         if unknown:
             raise ValueError(f"sim configuration faults.chamber: unknown key(s) {', '.join(sorted(unknown))}; "
-                             f"known: {', '.join(sorted(known))}")
-        plant = self.world.chamber
-        plant.heater_failed = bool(spec.get("heater_failed", False))
-        plant.compressor_failed = bool(spec.get("compressor_failed", False))
+                             f"known: {', '.join(sorted(STARTING_FAULTS))}")
+        for key, kind in STARTING_FAULTS.items():
+            if spec.get(key, False):
+                self.apply_fault(kind)
+
+    # --- the fault interface (fault plans use only this) ------------------------------------
+
+    def apply_fault(self, kind: FaultKind | str, *, duration_s: float = 0.0, count: int = 0) -> None:
+        """Start a fault now (see `labrunner.fault_kinds.FaultKind`); unknown kinds are a ValueError."""
+        self._faults.apply(kind, duration_s=duration_s, count=count)
+
+    def clear_fault(self, kind: FaultKind | str) -> None:
+        """End a fault now."""
+        self._faults.clear(kind)
+
+    # --- what the dry run's operator and barrier need -----------------------------------------
+
+    def power_off(self) -> None:
+        """The IMU loses power (the operator opened the door to remount it)."""
+        self.world.power_off()
+
+    @property
+    def last_imu_counter(self) -> int | None:
+        """16-bit counter of the last intact IMU frame put on the line (None: none since power-on)."""
+        return self.imu.last_sent_counter
 
     def lab_config(self) -> dict[str, Any]:
         """A lab configuration (see `labrunner.lab`) that points the drivers at these sims."""
@@ -86,6 +119,7 @@ class SimLab:
         self.world.remount(orientation, self.clock.now())
 
     def close(self) -> None:
+        log.debug("simulated lab closing")
         if isinstance(self.clock, VirtualClock):
             self.clock.remove_listener(self.imu.emit_until)
         self.imu.close()

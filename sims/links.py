@@ -8,12 +8,15 @@ path of a pty pair. The simulated instrument writes and reads the other end.
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import select
 import socket
 import threading
 import tty
 from typing import Protocol
+
+log = logging.getLogger(__name__)
 
 
 class SimPort(Protocol):
@@ -55,12 +58,14 @@ class TcpSerialPort:
                 return
             if self.refusing:
                 conn.close()
+                log.debug("sim port %s: connection refused (link down)", self.url)
                 continue
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.settimeout(self.send_timeout_s)
             with self._lock:
                 old, self._client = self._client, conn
                 self._connected.notify_all()
+            log.debug("sim port %s: client connected%s", self.url, " (replacing the previous one)" if old else "")
             if old is not None:
                 old.close()
 
@@ -118,6 +123,7 @@ class TcpSerialPort:
         """Fault: the line drops (the driver sees its connection close)."""
         client = self._client
         if client is not None:
+            log.debug("sim port %s: client disconnected", self.url)
             try:
                 client.shutdown(socket.SHUT_RDWR)
             except OSError:

@@ -17,6 +17,7 @@ silence, a table fault.
 
 from __future__ import annotations
 
+import logging
 import random
 import threading
 from dataclasses import dataclass
@@ -25,6 +26,8 @@ from labrunner.clock import Clock
 
 from .links import SimPort
 from .world import SimWorld
+
+log = logging.getLogger(__name__)
 
 VENDOR, MODEL, SERIAL = "LABRUNNER", "RT-SIM-1", "SN0001"
 
@@ -47,6 +50,7 @@ class TableServer:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name="sim-table", daemon=True)
         self._thread.start()
+        log.info("rate table sim: serving on %s", port.url)
 
     def _serve(self) -> None:
         buf = b""
@@ -65,6 +69,7 @@ class TableServer:
                     if reply is not None:
                         self.port.write(reply)
             if len(buf) > 4096:  # a line that never ends is noise
+                log.debug("rate table sim: discarded %d bytes without a line end", len(buf))
                 buf = b""
 
     def handle(self, line: str) -> bytes | None:
