@@ -296,9 +296,11 @@ class Campaign:
 
     def samples(self, include_monitor: bool = False) -> pd.DataFrame:
         """Samples in the campaign CSV columns, time-ordered, with per row `kind` (record/monitor), the
-        `step_idx` of its step, the chamber `setpoint_c` and the commanded table rate `rate_cmd_dps`.
-        Monitor rows (1 s means while ramping and soaking) only with `include_monitor`."""
-        return self._store.samples_frame(self.id, include_monitor=include_monitor, with_steps=True)
+        sequencer's `state`, the `step_idx` of its step, the chamber `setpoint_c` and the commanded
+        table rate `rate_cmd_dps`. Monitor rows (1 s means while the chamber moves to the remount
+        temperature or a step's, and soaks there) only with `include_monitor`."""
+        return self._store.samples_frame(self.id, include_monitor=include_monitor, with_steps=True,
+                                         remount_c=self.procedure().model.remount_c)
 
     def data(self, include_monitor: bool = False) -> CampaignData:
         """Validated samples (campaign CSV columns) with provenance: what `fit` and `diagnose` read."""
