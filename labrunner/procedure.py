@@ -15,8 +15,10 @@ heating and cooling branches.
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
@@ -24,6 +26,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from labrunner.yaml_config import ConfigError, load_yaml, read_text, validate
 from labrunner.domain import ORIENTATIONS
+
+log = logging.getLogger(__name__)
+
+SHIPPED_PACKAGE = "labrunner.procedures"  # the repository's procedures/, installed as package data
 
 OrientationName = Literal["x_up", "x_down", "y_up", "y_down", "z_up", "z_down"]
 
@@ -326,9 +332,28 @@ def parse_procedure(text: str, source: str) -> Procedure:
     return Procedure(model=model, text=text, source=source)
 
 
+def shipped_procedures() -> list[str]:
+    """Names of the procedures installed with labrunner (`labrunner run quick` finds them anywhere)."""
+    return sorted(f.name.removesuffix(".yaml") for f in resources.files(SHIPPED_PACKAGE).iterdir()
+                  if f.name.endswith(".yaml"))
+
+
 def load_procedure(path: str | Path) -> Procedure:
-    return parse_procedure(read_text(path), str(path))
+    """A procedure file; if `path` does not exist and is a bare name (`quick`, `quick.yaml`), the
+    shipped procedure of that name. Neither: a ConfigError naming the file and the shipped ones."""
+    p = Path(path)
+    if not p.exists() and p.parent == Path("."):
+        name = p.name.removesuffix(".yaml")
+        shipped = resources.files(SHIPPED_PACKAGE) / f"{name}.yaml"
+        if shipped.is_file():
+            log.info("%s: no such file; using the shipped procedure %r (%s)", p, name, shipped)
+            return parse_procedure(shipped.read_text(encoding="utf-8"), str(shipped))
+    if not p.exists():
+        raise ConfigError([f"{p}: file not found (shipped procedures, usable by name: "
+                           f"{', '.join(shipped_procedures())})"])
+    log.debug("procedure from %s", p)
+    return parse_procedure(read_text(p), str(p))
 
 
 __all__ = ["ORIENTATIONS", "Procedure", "ProcedureModel", "Step", "load_procedure", "parse_procedure",
-           "triangular_rates"]
+           "shipped_procedures", "triangular_rates"]
