@@ -1,6 +1,6 @@
-"""What the simulation gets wrong: diagnose measured campaigns against the sims' IMU model.
+"""What the simulation gets wrong: diagnose measured campaigns against the simulator's IMU model.
 
-`diagnose(frame)` fits `sims.imu_model`'s baseline (Eq. 1 with cubic thermal terms) to
+`diagnose(frame)` fits the simulator's baseline (`labrunner.imu`) (Eq. 1 with cubic thermal terms) to
 measured rows, tests every candidate cause on held-out time blocks against a drift model,
 names the causes the data supports (and the ones it cannot tell apart), builds the
 extended `ImuModel`, and measures the held-out gain. `labrunner diagnose` is the CLI.

@@ -3,8 +3,9 @@
 A campaign without table rotation says nothing about gyro scale factors; one run says
 nothing about turn-on bias; three orientations cannot separate accelerometer bias from
 scale factor. These are decided from the design of the data (orientations, runs,
-rates, temperatures), with messages that say what is missing; anything subtler is
-caught numerically during the search (a term whose columns add nothing identifiable).
+rates, temperatures), with messages that say what is missing: the baseline's here, each
+cause's by its effect class (`Effect.coverage_gaps`); anything subtler is caught
+numerically during the search (a term whose columns add nothing identifiable).
 """
 
 from __future__ import annotations
@@ -14,16 +15,15 @@ from typing import Any
 
 import numpy as np
 
-from labrunner.domain import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, ORIENTATIONS, UP_VECTORS
+from labrunner.domain import ORIENTATIONS, UP_VECTORS
+from labrunner.imu.effect import RAMP_C_PER_MIN
+from labrunner.imu.effects import REGISTRY
 
 from .measurements import Measurements
 from .temperature import branch_state, temperature_rate
 
 AXES = ("x", "y", "z")
 _ROTATING_DPS = 1.0
-_RAMP_C_PER_MIN = 0.1
-_MIN_TEMPERATURE_LEVELS = 6  # a cubic has four coefficients: two spare levels to see anything else
-_MIN_BRANCH_OVERLAP_C = 5.0
 
 
 @dataclass
@@ -44,6 +44,10 @@ class Coverage:
     not_identifiable: list[str] = field(default_factory=list)
     excluded: dict[str, set[str]] = field(default_factory=dict)  # cause -> channels it cannot be tested on
     notes: list[str] = field(default_factory=list)
+    # Orientation facts the effects' identifiability depends on (labrunner.imu.effect.CampaignFacts).
+    vertical: tuple[bool, bool, bool] = (False, False, False)  # each body axis vertical in some orientation
+    both_ways: tuple[bool, bool, bool] = (False, False, False)  # ... and both up and down
+    bias_separable: bool = False  # the orientations separate accelerometer bias from scale factor
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -114,60 +118,38 @@ def _judge(cov: Coverage, present: list[int]) -> None:
     static = np.column_stack([np.ones(len(present)), up])
     rank = int(np.linalg.matrix_rank(static))
     expected = 1 + sum(vertical)
+    cov.vertical = (vertical[0], vertical[1], vertical[2])
+    cov.both_ways = (both[0], both[1], both[2])
+    cov.bias_separable = rank >= expected
 
+    # The baseline's own blind spots.
     for j, axis in enumerate(AXES):
         if not vertical[j]:
             cov.not_identifiable.append(
                 f"accelerometer scale factor/misalignment along {axis} (S_x{axis}, S_y{axis}, S_z{axis}): "
                 f"the {axis} axis was never vertical")
-            _exclude(cov, "scale_nonlinearity", [ACCEL_CHANNELS[j]],
-                     f"scale_nonlinearity on accel_{axis}: the {axis} axis was never vertical")
             if cov.rotating:
                 cov.not_identifiable.append(f"gyro scale factor/misalignment about {axis}: no rotation about the "
                                             f"{axis} axis (never vertical)")
-                _exclude(cov, "scale_nonlinearity", [GYRO_CHANNELS[j]],
-                         f"scale_nonlinearity on gyro_{axis}: no rotation about the {axis} axis")
-        elif not both[j]:
-            _exclude(cov, "scale_nonlinearity", [ACCEL_CHANNELS[j]],
-                     f"scale_nonlinearity on accel_{axis}: the {axis} axis was vertical one way only, so the "
-                     f"square of the force cannot be told from the scale factor")
     if rank < expected:
         cov.not_identifiable.append(
             "accelerometer bias vs scale factor/misalignment: with orientations " + ", ".join(cov.orientations)
             + " no axis was both up and down, so the bias is identifiable only in combination with them")
-        if len(present) > 1:
-            cov.not_identifiable.append(
-                "g_sensitivity: determined only up to a constant per gyro axis (absorbed by the gyro bias): "
-                "no axis was both up and down")
-    if not any(vertical[j] for j in range(3)) or len(present) < 2:
-        _exclude(cov, "g_sensitivity", GYRO_CHANNELS,
-                 "g_sensitivity: a single orientation, the specific force never changes")
-
     if not cov.rotating:
         cov.not_identifiable.append("gyro scale factor and misalignment: no table rotation in the data")
-        _exclude(cov, "scale_nonlinearity", GYRO_CHANNELS, "scale_nonlinearity (gyro): no table rotation in the data")
-        _exclude(cov, "lever_arm", ACCEL_CHANNELS, "lever_arm: no table rotation in the data")
-    if cov.runs < 2:
-        _exclude(cov, "turn_on_bias", CHANNELS, "turn_on_bias: one power-on (run) in the data")
-    if cov.max_temperature_rate_c_per_min < _RAMP_C_PER_MIN:
-        _exclude(cov, "thermal_lag", CHANNELS,
-                 f"thermal_lag: the logged temperature never changes faster than {_RAMP_C_PER_MIN} degC/min "
-                 "(no ramps logged)")
-    if cov.power_ons_within_an_orientation > 0 and cov.max_temperature_rate_c_per_min < _RAMP_C_PER_MIN:
-        _exclude(cov, "hysteresis", CHANNELS,
-                 "hysteresis: the IMU is power-cycled between soaks and the ramps are not logged, so the "
-                 "self-heating after each power-on moves the branch where the log cannot see it")
-    if cov.branch_overlap_c < _MIN_BRANCH_OVERLAP_C:
-        _exclude(cov, "hysteresis", CHANNELS,
-                 "hysteresis: no temperature range was reached both while heating and while cooling")
-    if cov.temperature_levels < 4 and cov.max_temperature_rate_c_per_min < _RAMP_C_PER_MIN:
+    if cov.temperature_levels < 4 and cov.max_temperature_rate_c_per_min < RAMP_C_PER_MIN:
         cov.not_identifiable.append(
             f"the cubic temperature dependence of biases and scale factors: {cov.temperature_levels} temperature "
             f"level(s); only terms up to degree {max(cov.temperature_levels - 1, 0)} are determined")
-    if cov.temperature_levels < _MIN_TEMPERATURE_LEVELS:
-        _exclude(cov, "temperature_nonlinearity", CHANNELS,
-                 f"temperature_nonlinearity: {cov.temperature_levels} temperature levels; a cubic fits "
-                 f"up to four, at least {_MIN_TEMPERATURE_LEVELS} are needed")
+
+    # Each effect's: what it needs to be identifiable, in its own words.
+    for name, effect in REGISTRY.items():
+        for gap in effect.coverage_gaps(cov):
+            if gap.channels:
+                _exclude(cov, name, gap.channels, gap.message)
+            elif gap.message not in cov.not_identifiable:
+                cov.not_identifiable.append(gap.message)
+
     if not cov.chamber_logged:
         cov.notes.append("chamber_c is empty: no cause needs it (all errors are modelled against the IMU's own "
                          "temperature sensor)")

@@ -15,8 +15,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from labrunner.domain import CHANNELS
 from labrunner.errors import UserError
-from labrunner.domain import CHANNELS, GYRO_CHANNELS
+from labrunner.imu.effects import drift_effect
 from labrunner.imu.model import ImuModel
 
 from .advice import separating_measurement
@@ -32,7 +33,7 @@ from .measurements import Measurements
 from .model import BASELINE, DesignBuilder, Selected, Spec, channel_list, design_derivative, replace, without
 from .residuals import residual_table
 from .selection import Evaluation, Searcher, SelectionResult
-from .terms import CAUSE_ORDER, TermContext, TermFit, candidate_terms
+from .terms import TermContext, TermFit, candidate_terms
 
 _MIN_BLOCKS = 40
 _DRIFT_EVIDENCE = 10.0
@@ -69,7 +70,8 @@ class Gain:
         return float(np.mean(values)) if values else 0.0
 
     def to_json(self) -> dict[str, Any]:
-        return {"heldout_rms_before": _round(self.heldout_rms_before), "heldout_rms_after": _round(self.heldout_rms_after),
+        return {"heldout_rms_before": _round(self.heldout_rms_before),
+                "heldout_rms_after": _round(self.heldout_rms_after),
                 "improvement_pct": round(self.improvement_pct, 2),
                 "improvement_pct_by_channel": {c: round(v, 2) for c, v in self.improvement_by_channel.items()}}
 
@@ -156,7 +158,7 @@ class _Diagnoser:
         wanted = set(options.causes) if options.causes else set(self.terms)
         unknown = wanted - set(self.terms)
         if unknown:
-            raise UserError(f"unknown cause(s) {', '.join(sorted(unknown))}; expected some of {', '.join(CAUSE_ORDER)}")
+            raise UserError(f"unknown cause(s) {', '.join(sorted(unknown))}; expected some of {', '.join(self.terms)}")
         self.allowed = {name: set(t.channels) - self.coverage.excluded.get(name, set())
                         for name, t in self.terms.items() if name in wanted}
         self.builder = DesignBuilder(self.ctx, self.terms)
@@ -180,7 +182,8 @@ class _Diagnoser:
         """A gyro's squared-rate term smaller than the table's rate accuracy at the highest rate
         cannot be told from the reference's own error (a per-record scale error)."""
         top = float(np.max(np.abs(self.meas.table_rate_dps))) if len(self.meas) else 0.0
-        return {("scale_nonlinearity", c): accuracy * top for c in GYRO_CHANNELS}
+        floors = {(name, c): t.effect.rate_floor(c, top, accuracy) for name, t in self.terms.items() for c in CHANNELS}
+        return {k: v for k, v in floors.items() if v > 0}
 
     def _floors(self) -> dict[str, float]:
         """Per channel, the peak-to-peak effect a coarse temperature log can fake: half a logger
@@ -216,8 +219,9 @@ class _Diagnoser:
         coefficients = {c: eng.coefficients(spec, systems[c])[0][systems[c].slices[BASELINE]] for c in CHANNELS}
         effects = {f.cause: f.effect for f in findings if f.status == "selected"}
         walk = {c: n.drift_per_sqrt_s for c, n in noise.items() if n.drift_evidence > _DRIFT_EVIDENCE}
-        if walk:
-            effects["bias_random_walk"] = {"sigma_per_sqrt_s": walk}
+        drift = drift_effect()
+        if walk and drift is not None:  # the drift of the noise model, as the simulator's effect
+            effects[drift.name] = drift.from_drift(walk)
         model = build_model(coefficients, effects, noise)
         base_coef = {c: eng.coefficients((), base_systems[c])[0] for c in CHANNELS}
         baseline_model = build_model(base_coef, {}, noise)
@@ -227,8 +231,8 @@ class _Diagnoser:
         residuals = residual_table(self.meas, self.blocks,
                                    np.column_stack([eng.residual((), base_systems[c]) for c in CHANNELS]),
                                    np.column_stack([eng.residual(spec, systems[c]) for c in CHANNELS]))
-        notes = [n for n in self.ctx.resolution_notes
-                 if not (n.startswith("hysteresis travel_c") and not self.allowed.get("hysteresis"))]
+        notes = list(self.ctx.resolution_notes)
+        notes += [n for name, t in self.terms.items() if self.allowed.get(name) for n in t.notes(self.ctx)]
         not_identifiable = list(self.coverage.not_identifiable) + notes + self._aliased(result)
         verdict = findings[0].cause if findings and findings[0].status == "selected" else "none"
         return Diagnosis(
@@ -326,9 +330,7 @@ class _Diagnoser:
         last = {ev.term: ev for ev in result.steps[-1].evaluations} if result.steps else {}
         selected = {s.term for s in result.spec}
         out = []
-        for name in CAUSE_ORDER:
-            if name not in self.terms:
-                continue
+        for name in self.terms:
             entry: dict[str, Any] = {"cause": name, "tested_on": channel_list(self.allowed.get(name, set())),
                                      "selected": name in selected}
             if name in first:

@@ -69,7 +69,7 @@ class FilterBank:
 
     Whitening is the filter's level recursion level[k] = (1 - K[k]) level[k-1] + K[k] x[k],
     solved in closed form (level[k] = P[k] sum_j K[j] x[j] / P[j], P the running product
-    of 1 - K) over stretches short enough that 1/P cannot overflow, as sims.recursions does
+    of 1 - K) over stretches short enough that 1/P cannot overflow, as labrunner.imu.recursions does
     for one series. The stretches and scale factors depend only on the gains, so they are
     computed once; each whitening is then a few vectorised in-place passes.
     """

@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 
 from labrunner.domain import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS
-
 from labrunner.imu.model import ImuModel, TriadModel
 
 from .blocks import Blocks
@@ -24,13 +23,13 @@ from .measurements import Measurements
 @dataclass
 class ChannelNoise:
     white_rms: float  # RMS of the white noise over this log's rows, sensor units
-    noise_density: float  # sensor units per sqrt(Hz), as sims.imu_model.TriadModel
+    noise_density: float  # sensor units per sqrt(Hz), as labrunner.imu.model.TriadModel
     drift_per_sqrt_s: float  # random-walk bias drift, sensor units per sqrt(s)
     drift_evidence: float  # 2 log-likelihood ratio of the drift against none
 
 
 def noise_density(meas: Measurements, blocks: Blocks) -> np.ndarray:
-    """(6,) white-noise density (sensor units per sqrt(Hz), as sims.imu_model.TriadModel).
+    """(6,) white-noise density (sensor units per sqrt(Hz), as labrunner.imu.model.TriadModel).
 
     A row that averages (or samples at the rate of) its spacing dt has white RMS
     density / sqrt(2 dt), so two neighbours differ by density / sqrt(dt): the differences

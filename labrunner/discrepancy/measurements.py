@@ -1,7 +1,7 @@
 """Measured campaign rows as the arrays the error model needs.
 
 The campaign CSV gives outputs and the conditions; the reference values follow from
-each row (DESIGN.md): +1 g along the up axis, the table rate about the up axis, Earth
+each row: +1 g along the up axis, the table rate about the up axis, Earth
 rate neglected. What the analysis fits is the *error*: measured output minus reference.
 """
 
@@ -28,14 +28,14 @@ class Measurements:
 
     t_s: np.ndarray  # (N,) s
     run: np.ndarray  # (N,) power-on counter
-    orientation: np.ndarray  # (N,) index into sims.imu_model.ORIENTATIONS
+    orientation: np.ndarray  # (N,) index into labrunner.domain.ORIENTATIONS
     temp_c: np.ndarray  # (N,) IMU temperature (de-quantised when the log is coarse)
     chamber_c: np.ndarray  # (N,) chamber air, NaN when not logged
     table_rate_dps: np.ndarray  # (N,)
     force_g: np.ndarray  # (N, 3) reference specific force, body frame
     rate_dps: np.ndarray  # (N, 3) reference angular rate, body frame
     t_on_s: np.ndarray  # (N,) time since the run's first row
-    output: np.ndarray  # (N, 6) measured, channel order sims.imu_model.CHANNELS
+    output: np.ndarray  # (N, 6) measured, channel order labrunner.domain.CHANNELS
     row_dt_s: float  # typical spacing of consecutive rows within a run
     temperature_quantum_c: float | None  # the logger's temperature step, when it is coarse
     logged_temp_c: np.ndarray | None = None  # imu_temp_c as logged, when it was de-quantised
@@ -78,7 +78,7 @@ class Measurements:
         return np.flatnonzero(self.orientation[1:] != self.orientation[:-1]) + 1
 
     def imu_inputs(self) -> ImuInputs:
-        """The rows as inputs of `sims.imu_model.ImuModel` (to evaluate a model on this campaign)."""
+        """The rows as inputs of `labrunner.imu.model.ImuModel` (to evaluate a model on this campaign)."""
         return ImuInputs(t_s=self.t_s, run=self.run, t_on_s=self.t_on_s, temp_c=self.temp_c,
                          force_g=self.force_g, rate_dps=self.rate_dps)
 

@@ -1,8 +1,9 @@
 """A model specification (baseline + selected terms) and its per-channel design matrix.
 
-The baseline regressors come from `sims.imu_model.baseline_design`, the function the
+The baseline regressors come from `labrunner.imu.baseline.baseline_design`, the function the
 simulator's own error model is written against, so the coefficients fitted here load
-straight back into `TriadModel.from_coefficients`.
+straight back into `TriadModel.from_coefficients`. What each term's columns are, and whether a
+term moves the baseline's temperature instead, is the term's effect's business.
 """
 
 from __future__ import annotations
@@ -12,13 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from labrunner.domain import CHANNELS, T_REF_C
-
-from labrunner.imu.model import baseline_design
+from labrunner.imu.baseline import baseline_design
+from labrunner.imu.effects import REGISTRY
 
 from .terms import Term, TermContext
 
 BASELINE = "baseline"
-PER_CHANNEL_TERMS = frozenset({"scale_nonlinearity", "lever_arm"})  # columns that differ channel by channel
 
 
 @dataclass(frozen=True)
@@ -42,10 +42,17 @@ Spec = tuple[Selected, ...]
 
 
 def lag_tau(spec: Spec) -> float | None:
+    """Time constant of the selected term that moves the baseline's temperature, if any."""
     for s in spec:
-        if s.term == "thermal_lag":
-            return s.params["tau_s"]
+        cls = REGISTRY.get(s.term)
+        if cls is not None and cls.moves_baseline_temperature:
+            return s.params[cls.lag_parameter]
     return None
+
+
+def _lagged(spec: Spec, channel: str) -> bool:
+    """Whether the channel's baseline runs at the lagged temperature in this specification."""
+    return any(channel in s.channels and REGISTRY[s.term].moves_baseline_temperature for s in spec)
 
 
 def replace(spec: Spec, sel: Selected) -> Spec:
@@ -97,7 +104,7 @@ class DesignBuilder:
 
     def columns(self, term: str, theta: dict[str, float], element_tau: float | None) -> dict[str, np.ndarray]:
         """channel -> (M, q) regressors of a term."""
-        uses_temp = term == "temperature_nonlinearity"
+        uses_temp = self.terms[term].uses_element_temperature
         key = (term, tuple(sorted(theta.items())), element_tau if uses_temp else None)
         if key not in self._columns:
             if len(self._columns) > 64:
@@ -120,38 +127,39 @@ class DesignBuilder:
     def predict_rows(self, spec: Spec, channel: str, betas: np.ndarray, slices: dict[str, slice]) -> np.ndarray:
         """(N, K) row-level model error for K coefficient vectors (K, p) of `design(spec, channel)`."""
         tau = lag_tau(spec)
-        lagged = any(s.term == "thermal_lag" and channel in s.channels for s in spec)
+        lagged = _lagged(spec, channel)
         out = self.baseline_rows(channel, tau if lagged else None) @ betas[:, slices[BASELINE]].T
         for s in spec:
-            if s.term == "thermal_lag" or channel not in s.channels:
-                continue
             term = self.terms[s.term]
+            if term.moves_baseline_temperature or channel not in s.channels:
+                continue
             for k in range(betas.shape[0]):
                 out[:, k] += term.predict(self.ctx, s.params, tau, channel, betas[k, slices[s.term]])
         return out
 
     def design(self, spec: Spec, channel: str) -> Design:
         tau = lag_tau(spec)
-        lagged = any(s.term == "thermal_lag" and channel in s.channels for s in spec)
+        lagged = _lagged(spec, channel)
         triad = "accel" if channel.startswith("accel") else "gyro"
         parts = [self.baseline(channel, tau if lagged else None)]
         key: list = [(BASELINE, triad, tau if lagged else None)]
         slices = {BASELINE: slice(0, parts[0].shape[1])}
         p = parts[0].shape[1]
         for s in spec:
-            if s.term == "thermal_lag" or channel not in s.channels:
+            term = self.terms[s.term]
+            if term.moves_baseline_temperature or channel not in s.channels:
                 continue
             cols = self.columns(s.term, s.params, tau)[channel]
             parts.append(cols)
-            key.append((s.term, s.theta, tau if s.term == "temperature_nonlinearity" else None,
-                        channel if s.term in PER_CHANNEL_TERMS else triad))
+            key.append((s.term, s.theta, tau if term.uses_element_temperature else None,
+                        channel if term.per_channel_columns else triad))
             slices[s.term] = slice(p, p + cols.shape[1])
             p += cols.shape[1]
         return Design(np.concatenate(parts, axis=1), slices, list(zip(key, parts)))
 
 
 def design_derivative(temp_c: np.ndarray, reference: np.ndarray, order: int = 1) -> np.ndarray:
-    """d/dT (order 1) or d2/dT2 (order 2) of `sims.imu_model.baseline_design` (N, 16), same layout."""
+    """d/dT (order 1) or d2/dT2 (order 2) of `labrunner.imu.baseline.baseline_design` (N, 16), same layout."""
     tau = np.asarray(temp_c, dtype=float) - T_REF_C
     zero, one = np.zeros_like(tau), np.ones_like(tau)
     if order == 1:

@@ -41,7 +41,8 @@ def write_report(diagnosis: Diagnosis, directory: str | Path) -> list[Path]:
     for name, column, label, _ in PLOTS:
         written.append(_scatter(table, column, label, out / name))
     written.append(_per_group(table, "run", "run (power-on)", out / "residual_by_run.png"))
-    written.append(_per_group(table, "orientation", "orientation (specific force)", out / "residual_by_orientation.png"))
+    written.append(_per_group(table, "orientation", "orientation (specific force)",
+                              out / "residual_by_orientation.png"))
     written.append(_gain_plot(diagnosis, out / "heldout_rms.png"))
     csv = out / "residuals.csv"
     table.to_csv(csv, index=False, float_format="%.9g")
@@ -146,7 +147,8 @@ def summary_markdown(diagnosis: Diagnosis, plots: list[str]) -> str:
         lines += ["| cause | status | channels | parameters | held-out RMS gain | confounded with |",
                   "|---|---|---|---|---|---|"]
         for f in diagnosis.findings:
-            lines.append(f"| {f.cause} | {f.status} | {', '.join(f.channels)} | `{_compact(f.to_json()['parameters'])}` "
+            lines.append(f"| {f.cause} | {f.status} | {', '.join(f.channels)} "
+                         f"| `{_compact(f.to_json()['parameters'])}` "
                          f"| {f.gain.improvement_pct:.1f} % | {', '.join(f.confounded_with) or '-'} |")
         lines.append("")
         for f in diagnosis.findings:
@@ -155,7 +157,8 @@ def summary_markdown(diagnosis: Diagnosis, plots: list[str]) -> str:
     else:
         lines += [("No candidate cause earns its parameters on held-out data: the baseline model "
                    "(Eq. 1 with cubic thermal terms) explains the measurements to their noise and drift."), ""]
-    lines += ["## Held-out residual RMS per channel", "", "| channel | baseline | extended | gain |", "|---|---|---|---|"]
+    lines += ["## Held-out residual RMS per channel", "", "| channel | baseline | extended | gain |",
+              "|---|---|---|---|"]
     for c in CHANNELS:
         b, a = diagnosis.gain.heldout_rms_before[c], diagnosis.gain.heldout_rms_after[c]
         lines.append(f"| {c} | {b * _SCALE[c]:.4g} {_UNITS[c]} | {a * _SCALE[c]:.4g} {_UNITS[c]} "
@@ -173,7 +176,8 @@ def summary_markdown(diagnosis: Diagnosis, plots: list[str]) -> str:
                        f"(load with `SimLabConfig.from_dict({{\"imu_model\": path}})`).")]
     lines += ["", "## Plots", ""] + [f"- ![{p}]({p})" for p in plots]
     lines += ["", (f"Method: {diagnosis.method['criterion']}; {diagnosis.method['folds']} folds of "
-                   f"{diagnosis.method['holdout_segment_s']:.0f} s stretches, {diagnosis.method['blocks']} blocks."), ""]
+                   f"{diagnosis.method['holdout_segment_s']:.0f} s stretches, "
+                   f"{diagnosis.method['blocks']} blocks."), ""]
     return "\n".join(lines)
 
 

@@ -43,7 +43,7 @@ import numpy as np
 from labrunner.domain import CHANNELS
 
 from .engine import ChannelSystem, Engine
-from .model import BASELINE, PER_CHANNEL_TERMS, Selected, Spec, design_derivative, lag_tau, replace, without
+from .model import BASELINE, Selected, Spec, design_derivative, lag_tau, replace, without
 from .terms import Term
 
 _GOLDEN = 0.5 * (np.sqrt(5.0) - 1.0)
@@ -126,7 +126,7 @@ class Searcher:
         channels = [c for c in CHANNELS if c in self.allowed.get(term, set()) and (only is None or c in only)]
         cols = None if t.moves_baseline_temperature else self.engine.builder.columns(term, theta, lag_tau(spec))
         ctx = self.engine.builder.ctx
-        lag = (ctx.element_temp(theta["tau_s"]) - ctx.meas.temp_c) if slopes is not None else None
+        lag = (ctx.element_temp(theta[t.lag_parameter]) - ctx.meas.temp_c) if slopes is not None else None
         for c in channels:
             base = systems[c].cv
             if t.moves_baseline_temperature and slopes is not None:
@@ -136,10 +136,11 @@ class Searcher:
                 cand = self.engine.system(replace(spec, Selected.make(term, theta, {c})), c, rho[c]).cv
                 added = 1
             else:
+                assert cols is not None
                 # Channels share columns (and often the drift rate), and the same candidate comes
                 # back at every step: its whitened columns are cached.
-                key = (term, tuple(sorted(theta.items())), lag_tau(spec) if term == "temperature_nonlinearity" else None,
-                       c if term in PER_CHANNEL_TERMS else "shared")
+                key = (term, tuple(sorted(theta.items())), lag_tau(spec) if t.uses_element_temperature else None,
+                       c if t.per_channel_columns else "shared")
                 cand = self.engine.try_columns(systems[c], self.engine.whiten_cached(key, rho[c], cols[c]))
                 added = cand.n_params - base.n_params
                 if added <= 0:
@@ -200,9 +201,9 @@ class Searcher:
             hopeful = [c for c, d in best.delta.items() if d > -2 * self.engine.penalty]
             exact = self.evaluate(spec, systems, rho, term, best.theta, only=hopeful)
             if np.isfinite(_objective(exact)):
-                tau = exact.theta["tau_s"]
-                exact = self._golden(spec, systems, rho, term, exact, "tau_s", tau / 1.25, tau * 1.25, True, 6,
-                                     None, hopeful)
+                tau = exact.theta[t.lag_parameter]
+                exact = self._golden(spec, systems, rho, term, exact, t.lag_parameter, tau / 1.25, tau * 1.25, True,
+                                     6, None, hopeful)
             best = exact
         return best
 

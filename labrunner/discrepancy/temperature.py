@@ -1,6 +1,6 @@
 """Temperature-derived signals: de-dithered temperature, branch state, element temperature, rate.
 
-All built from `sims.recursions`, the same recursions the simulated IMU uses, so a term
+All built from `labrunner.imu.recursions`, the same recursions the simulated IMU uses, so a term
 fitted here means exactly what the sims effect of the same name does.
 """
 
@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from labrunner.domain import ROOM_C
-from labrunner.imu.recursions import first_order_lag, play_state
+from labrunner.imu.recursions import branch_state as path_branch_state
+from labrunner.imu.recursions import first_order_lag
 
 
 def dequantize(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarray, quantum_c: float,
@@ -63,7 +64,7 @@ def _dequantize_run(t: np.ndarray, level: np.ndarray, settle_s: float) -> np.nda
 
 
 def branch_state(temp_c: np.ndarray, travel_c: float, remounts: np.ndarray | None = None) -> np.ndarray:
-    """Hysteresis branch state in [-1, 1] (+1 after heating), as `sims` computes it.
+    """Hysteresis branch state in [-1, 1] (+1 after heating), as the simulator computes it.
 
     The branch depends on the whole temperature path, also the part that was not
     logged. A campaign starts at room temperature, and remounting the IMU in another
@@ -72,13 +73,7 @@ def branch_state(temp_c: np.ndarray, travel_c: float, remounts: np.ndarray | Non
     of a log that starts in a soak, and every soak after a remount, would be put on the
     branch the previous orientation ended on.
     """
-    temp = np.asarray(temp_c, dtype=float)
-    if temp.size == 0:
-        return np.empty(0)
-    at = np.unique(np.r_[0, np.asarray(remounts if remounts is not None else [], dtype=np.int64)])
-    path = np.insert(temp, at, ROOM_C)
-    h = play_state(path, travel_c)
-    return np.delete(h, at + np.arange(at.size))
+    return path_branch_state(temp_c, travel_c, remounts, ROOM_C)
 
 
 def element_temperature(t_s: np.ndarray, temp_c: np.ndarray, tau_s: float) -> np.ndarray:

@@ -4,23 +4,26 @@
 
 for the accelerometer triad (u = specific force, g) and the gyro triad (u = angular
 rate, deg/s); S holds scale-factor errors on its diagonal and misalignment off it,
-b is the bias, each element a cubic in (T - T_REF_C). T is the temperature that
-drives the errors: the IMU's temperature sensor, or with `thermal_lag` the sensing
-element's temperature lagging it.
+b is the bias, each element a cubic in (T - T_REF_C) (`baseline.py`). T is the
+temperature that drives the errors: the IMU's temperature sensor, or the temperature of
+an effect that moves it (a thermal lag's element temperature).
 
-This one module is used by the simulated IMU (streaming, with carried state), by
-the campaign synthesizer, and by `labrunner.discrepancy` to fit the same model to
-measured data. Every effect of DESIGN.md's diagnosis table is a term here, off by
-default, with its parameters in the sensor's own units.
+The effects are the classes of `labrunner.imu.effects`, one file each, off by default,
+with their parameters in the sensor's own units; the error without noise is the baseline
+plus the sum of the model's effects. This one model is used by the simulated IMU
+(streaming, with carried state), by the campaign synthesizer, and by
+`labrunner.discrepancy` to fit the same model to measured data.
 """
 
 from __future__ import annotations
 
 import copy
 import json
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -37,188 +40,15 @@ from labrunner.domain import (  # noqa: F401  (re-exported: the model's vocabula
     up_vector,
 )
 
-from .recursions import first_order_lag, play_state
+from .baseline import N_COEF, POLY_ORDER, TriadModel, baseline_design, thermal_powers  # noqa: F401 (re-exported)
+from .effect import Effect, Stream
+from .effects import REGISTRY, effect_class
+from .inputs import ImuInputs
 
-POLY_ORDER = 3  # cubic thermal terms: coefficients c0..c3 of (T - T_REF_C)**k
-N_COEF = POLY_ORDER + 1
+log = logging.getLogger(__name__)
 
-
-def thermal_powers(temp_c: np.ndarray) -> np.ndarray:
-    """(N, 4) matrix of (T - T_REF_C)**k, k = 0..3."""
-    tau = np.asarray(temp_c, dtype=float) - T_REF_C
-    return np.stack([np.ones_like(tau), tau, tau * tau, tau * tau * tau], axis=-1)
-
-
-def baseline_design(temp_c: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """(N, 16) regressors of one triad's baseline error for one output channel.
-
-    The error of channel i is design @ coef[i], with coef[i] laid out as
-    [bias c0..c3, S[i,0] c0..c3, S[i,1] c0..c3, S[i,2] c0..c3]; the design is the
-    same for the three channels of a triad.
-    """
-    p = thermal_powers(temp_c)
-    u = np.asarray(reference, dtype=float)
-    return np.concatenate([p, p * u[:, 0:1], p * u[:, 1:2], p * u[:, 2:3]], axis=1)
-
-
-@dataclass
-class TriadModel:
-    """Thermal error terms of one sensor triad."""
-
-    bias: np.ndarray  # (3, 4): b_i(T) coefficients, sensor units
-    scale: np.ndarray  # (3, 3, 4): S_ij(T) coefficients, unitless
-    noise_density: float  # white noise, sensor units per sqrt(Hz)
-
-    def __post_init__(self) -> None:
-        self.bias = np.asarray(self.bias, dtype=float).reshape(3, N_COEF)
-        self.scale = np.asarray(self.scale, dtype=float).reshape(3, 3, N_COEF)
-
-    def coefficients(self) -> np.ndarray:
-        """(3, 16) coefficients matching `baseline_design`."""
-        return np.concatenate([self.bias, self.scale[:, 0], self.scale[:, 1], self.scale[:, 2]], axis=1)
-
-    @classmethod
-    def from_coefficients(cls, coef: np.ndarray, noise_density: float) -> TriadModel:
-        coef = np.asarray(coef, dtype=float).reshape(3, 4 * N_COEF)
-        scale = np.stack([coef[:, N_COEF * (1 + j): N_COEF * (2 + j)] for j in range(3)], axis=1)
-        return cls(bias=coef[:, :N_COEF], scale=scale, noise_density=noise_density)
-
-    def bias_at(self, temp_c: np.ndarray) -> np.ndarray:
-        """(N, 3) bias at temperatures."""
-        return thermal_powers(temp_c) @ self.bias.T
-
-    def scale_at(self, temp_c: np.ndarray) -> np.ndarray:
-        """(N, 3, 3) S(T)."""
-        return np.einsum("nk,ijk->nij", thermal_powers(temp_c), self.scale)
-
-    def error(self, temp_c: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        """(N, 3) baseline error S(T) u + b(T)."""
-        p = thermal_powers(temp_c)
-        u = np.asarray(reference, dtype=float)
-        err = p @ self.bias.T
-        for j in range(3):
-            err += (p @ self.scale[:, j, :].T) * u[:, j: j + 1]
-        return err
-
-
-# --- effects -------------------------------------------------------------------------
-
-
-def _channel_map(values: Mapping[str, float] | None) -> dict[str, float]:
-    out = {str(k): float(v) for k, v in (values or {}).items()}
-    for k in out:
-        if k not in CHANNELS:
-            raise ValueError(f"unknown channel {k!r}; expected one of {', '.join(CHANNELS)}")
-    return out
-
-
-def _channel_vector(values: Mapping[str, float]) -> np.ndarray:
-    return np.array([values.get(c, 0.0) for c in CHANNELS])
-
-
-@dataclass
-class ThermalLag:
-    """The sensing element lags the IMU temperature sensor by a first-order lag."""
-
-    tau_s: float = 300.0
-    channels: list[str] = field(default_factory=lambda: list(CHANNELS))
-
-
-@dataclass
-class Hysteresis:
-    """Heating and cooling branches differ: offset = width/2 * h, h in [-1, 1] the branch state."""
-
-    width: dict[str, float] = field(default_factory=dict)  # heating minus cooling, sensor units
-    travel_c: float = 2.0  # temperature travel that moves the branch state by 1 - 1/e
-
-
-@dataclass
-class Warmup:
-    """A decaying transient after each power-on: amplitude * exp(-t_on / tau)."""
-
-    tau_s: float = 600.0
-    amplitude: dict[str, float] = field(default_factory=dict)  # offset at power-on
-
-
-@dataclass
-class TurnOnBias:
-    """A different constant offset after each power-on, normal with spread sigma.
-
-    `offsets` pins the offsets of listed runs ({run number: {channel: offset}}), so a model
-    fitted to a measured campaign reproduces that campaign's runs; other runs draw from sigma.
-    """
-
-    sigma: dict[str, float] = field(default_factory=dict)
-    offsets: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-@dataclass
-class GSensitivity:
-    """Gyro output depends on specific force: gyro += M f, M in deg/s per g."""
-
-    matrix_dps_per_g: list[list[float]] = field(default_factory=lambda: [[0.0] * 3 for _ in range(3)])
-
-
-@dataclass
-class ScaleNonlinearity:
-    """Output error grows with the square of the input: error = k2 * u_i**2."""
-
-    k2_per_dps: dict[str, float] = field(default_factory=dict)  # per g for accelerometer channels
-
-
-@dataclass
-class TemperatureNonlinearity:
-    """Temperature dependence that is not cubic: a smooth step amplitude * tanh((T - centre) / width)."""
-
-    amplitude: dict[str, float] = field(default_factory=dict)
-    center_c: float = 10.0
-    width_c: float = 4.0
-
-
-@dataclass
-class LeverArm:
-    """The accelerometer sits r_m (body frame, metres) off the rotation axis: it senses the
-    centripetal acceleration w x (w x r) / g0, which grows with the square of the table rate on
-    the horizontal axes. (The tangential term, present only while the table accelerates, is
-    neglected.)"""
-
-    r_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
-
-
-
-@dataclass
-class BiasRandomWalk:
-    """Slow random-walk bias drift, sigma in sensor units per sqrt(s) (bias instability)."""
-
-    sigma_per_sqrt_s: dict[str, float] = field(default_factory=dict)
-
-
-EFFECT_TYPES: dict[str, type] = {
-    "thermal_lag": ThermalLag,
-    "hysteresis": Hysteresis,
-    "warmup": Warmup,
-    "turn_on_bias": TurnOnBias,
-    "g_sensitivity": GSensitivity,
-    "scale_nonlinearity": ScaleNonlinearity,
-    "temperature_nonlinearity": TemperatureNonlinearity,
-    "bias_random_walk": BiasRandomWalk,
-    "lever_arm": LeverArm,
-}
-
-
-@dataclass
-class ImuInputs:
-    """What the error model needs per sample (all arrays of length N, time-ordered)."""
-
-    t_s: np.ndarray  # time, s (any origin, increasing)
-    run: np.ndarray  # power-on counter
-    t_on_s: np.ndarray  # time since this run's power-on, s
-    temp_c: np.ndarray  # IMU temperature sensor, deg C
-    force_g: np.ndarray  # (N, 3) true specific force in the body frame, g
-    rate_dps: np.ndarray  # (N, 3) true angular rate in the body frame, deg/s
-
-    def __len__(self) -> int:
-        return int(np.asarray(self.t_s).size)
+# name -> effect class, a live view of the registry (kept for callers of the former table).
+EFFECT_TYPES: Mapping[str, type[Effect]] = MappingProxyType(REGISTRY)
 
 
 @dataclass
@@ -227,9 +57,7 @@ class ModelState:
 
     t_s: float | None = None
     temp_c: float | None = None
-    element_c: float | None = None  # thermal-lag element temperature
-    branch: float = 0.0  # hysteresis state
-    walk: np.ndarray = field(default_factory=lambda: np.zeros(6))  # random-walk bias per channel
+    carried: dict[str, Any] = field(default_factory=dict)  # effect name -> the state it carries on
 
 
 @dataclass
@@ -238,120 +66,75 @@ class ImuModel:
 
     accel: TriadModel
     gyro: TriadModel
-    effects: dict[str, Any] = field(default_factory=dict)  # name -> effect dataclass
+    effects: dict[str, Any] = field(default_factory=dict)  # name -> effect (an `Effect`, or its parameters)
     seed: int = 0
 
     def __post_init__(self) -> None:
         for name, eff in list(self.effects.items()):
-            if name not in EFFECT_TYPES:
-                raise ValueError(f"unknown effect {name!r}; expected one of {', '.join(EFFECT_TYPES)}")
+            cls = effect_class(name)
             if isinstance(eff, Mapping):
-                self.effects[name] = effect_from_dict(name, eff)
+                self.effects[name] = cls.from_dict(eff)
+            elif not isinstance(eff, cls):
+                raise ValueError(f"effect {name!r} must be a {cls.__name__} or its parameters, "
+                                 f"not {type(eff).__name__}")
 
-    # -- the pieces ---------------------------------------------------------------
+    # -- the pieces ---------------------------------------------------------------------
+
+    def active(self) -> list[Effect]:
+        """The model's effects in registry order (the order they are summed in)."""
+        return [self.effects[name] for name in REGISTRY if name in self.effects]
+
+    def _mover(self) -> Effect | None:
+        return next((e for e in self.active() if e.moves_baseline_temperature), None)
 
     def element_temperature(self, inputs: ImuInputs, state: ModelState | None = None) -> np.ndarray:
-        """Temperature of the sensing element (the IMU sensor's unless thermal_lag is on)."""
-        lag = self.effects.get("thermal_lag")
+        """Temperature of the sensing element (the IMU sensor's unless an effect moves it)."""
+        mover = self._mover()
         temp = np.asarray(inputs.temp_c, dtype=float)
-        if lag is None:
+        if mover is None:
             return temp
-        if state is not None and state.element_c is not None:
-            return first_order_lag(inputs.t_s, temp, lag.tau_s, y0=state.element_c, x0=state.temp_c, t0=state.t_s)
-        return first_order_lag(inputs.t_s, temp, lag.tau_s)
+        st = state or ModelState()
+        return mover.baseline_temperature(inputs, st.t_s, st.temp_c, st.carried.get(mover.name))
 
     def run_offsets(self, runs: np.ndarray) -> np.ndarray:
-        """(N, 6) turn-on offsets: one normal draw per (seed, run), so every chunk agrees."""
-        eff = self.effects.get("turn_on_bias")
-        runs = np.asarray(runs, dtype=np.int64)
-        out = np.zeros((runs.size, 6))
-        if eff is None or runs.size == 0:
-            return out
-        sigma = _channel_vector(eff.sigma)
-        pinned = {int(k): _channel_vector(v) for k, v in eff.offsets.items()}
-        for r in np.unique(runs):
-            if int(r) in pinned:
-                out[runs == r] = pinned[int(r)]
-                continue
-            z = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, int(r) & 0xFFFFFFFF, 0x7B1A5]).standard_normal(6)
-            out[runs == r] = z * sigma
+        """(N, 6) per-run offsets of the effects that have them (one draw per (seed, run))."""
+        out = np.zeros((np.asarray(runs).size, len(CHANNELS)))
+        for eff in self.active():
+            if hasattr(eff, "run_offsets"):
+                out += eff.run_offsets(runs, self.seed)
         return out
+
+    def baseline_error(self, temp_c: np.ndarray, inputs: ImuInputs) -> np.ndarray:
+        """(N, 6) baseline error S(T) u + b(T) of both triads at temperatures temp_c."""
+        n = len(inputs)
+        force = np.asarray(inputs.force_g, dtype=float).reshape(n, 3)
+        rate = np.asarray(inputs.rate_dps, dtype=float).reshape(n, 3)
+        return np.concatenate([self.accel.error(temp_c, force), self.gyro.error(temp_c, rate)], axis=1)
 
     def deterministic_error(
         self, inputs: ImuInputs, state: ModelState | None = None, rng: np.random.Generator | None = None
     ) -> tuple[np.ndarray, ModelState]:
-        """(N, 6) error without white noise (random walk included when rng is given), and the new state."""
+        """(N, 6) error without white noise (random walk included when rng is given), and the new state:
+        the baseline at the sensor's temperature plus the sum of the model's effects."""
         n = len(inputs)
-        force = np.asarray(inputs.force_g, dtype=float).reshape(n, 3)
-        rate = np.asarray(inputs.rate_dps, dtype=float).reshape(n, 3)
         temp = np.asarray(inputs.temp_c, dtype=float)
         t = np.asarray(inputs.t_s, dtype=float)
         new = ModelState() if state is None else copy.deepcopy(state)
         if n == 0:
             return np.zeros((0, 6)), new
-
+        st = state or ModelState()
         element = self.element_temperature(inputs, state)
-        lag = self.effects.get("thermal_lag")
-        err = np.empty((n, 6))
-        if lag is None:
-            err[:, :3] = self.accel.error(temp, force)
-            err[:, 3:] = self.gyro.error(temp, rate)
-        else:
-            lagged = np.array([c in lag.channels for c in CHANNELS])
-            for sl, triad, u in ((slice(0, 3), self.accel, force), (slice(3, 6), self.gyro, rate)):
-                e_lag = triad.error(element, u)
-                e_now = triad.error(temp, u)
-                err[:, sl] = np.where(lagged[sl], e_lag, e_now)
-
-        eff = self.effects.get("temperature_nonlinearity")
-        if eff is not None:
-            step = np.tanh((element - eff.center_c) / eff.width_c)
-            err += step[:, None] * _channel_vector(eff.amplitude)[None, :]
-
-        eff = self.effects.get("hysteresis")
-        if eff is not None:
-            h0 = state.branch if state is not None else 0.0
-            temp0 = state.temp_c if state is not None else None
-            h = play_state(temp, eff.travel_c, h0=h0, temp0=temp0)
-            err += 0.5 * h[:, None] * _channel_vector(eff.width)[None, :]
-            new.branch = float(h[-1])
-
-        eff = self.effects.get("warmup")
-        if eff is not None:
-            decay = np.exp(-np.maximum(np.asarray(inputs.t_on_s, dtype=float), 0.0) / eff.tau_s)
-            err += decay[:, None] * _channel_vector(eff.amplitude)[None, :]
-
-        if "turn_on_bias" in self.effects:
-            err += self.run_offsets(inputs.run)
-
-        eff = self.effects.get("g_sensitivity")
-        if eff is not None:
-            err[:, 3:] += force @ np.asarray(eff.matrix_dps_per_g, dtype=float).T
-
-        eff = self.effects.get("scale_nonlinearity")
-        if eff is not None:
-            k2 = _channel_vector(eff.k2_per_dps)
-            err += np.concatenate([force, rate], axis=1) ** 2 * k2[None, :]
-
-        eff = self.effects.get("lever_arm")
-        if eff is not None:
-            w = np.deg2rad(rate)
-            r = np.asarray(eff.r_m, dtype=float)
-            err[:, :3] += np.cross(w, np.cross(w, r[None, :])) / STANDARD_GRAVITY
-
-        eff = self.effects.get("bias_random_walk")
-        if eff is not None and rng is not None:
-            sig = _channel_vector(eff.sigma_per_sqrt_s)
-            t_prev = np.concatenate(([t[0] if state is None or state.t_s is None else state.t_s], t[:-1]))
-            dt = np.maximum(t - t_prev, 0.0)
-            steps = rng.standard_normal((n, 6)) * np.sqrt(dt)[:, None] * sig[None, :]
-            walk = new.walk[None, :] + np.cumsum(steps, axis=0)
-            err += walk
-            new.walk = walk[-1].copy()
-
+        err = self.baseline_error(temp, inputs)
+        for eff in self.active():
+            stream = Stream(inputs=inputs, element_c=element, baseline_at=lambda tc: self.baseline_error(tc, inputs),
+                            seed=int(self.seed), rng=rng, t0=st.t_s, temp0=st.temp_c,
+                            carried=st.carried.get(eff.name))
+            extra, carried = eff.forward(stream)
+            err += extra
+            if carried is not None:
+                new.carried[eff.name] = carried
         new.t_s = float(t[-1])
         new.temp_c = float(temp[-1])
-        new.element_c = float(element[-1])
         return err, new
 
     def noise_sigma(self, sample_rate_hz: float) -> np.ndarray:
@@ -395,7 +178,8 @@ class ImuModel:
         acc = data.get("accel", {})
         gyr = data.get("gyro", {})
         return cls(
-            accel=TriadModel(np.asarray(acc.get("bias", base.accel.bias)), np.asarray(acc.get("scale", base.accel.scale)),
+            accel=TriadModel(np.asarray(acc.get("bias", base.accel.bias)),
+                             np.asarray(acc.get("scale", base.accel.scale)),
                              float(acc.get("noise_density", base.accel.noise_density))),
             gyro=TriadModel(np.asarray(gyr.get("bias", base.gyro.bias)), np.asarray(gyr.get("scale", base.gyro.scale)),
                             float(gyr.get("noise_density", base.gyro.noise_density))),
@@ -432,45 +216,13 @@ class ImuModel:
         return out
 
 
-def effect_to_dict(eff: Any) -> dict[str, Any]:
-    from dataclasses import asdict
-
-    return asdict(eff)
+def effect_to_dict(eff: Effect) -> dict[str, Any]:
+    return eff.to_dict()
 
 
-def effect_from_dict(name: str, data: Mapping[str, Any]) -> Any:
-    if name not in EFFECT_TYPES:
-        raise ValueError(f"unknown effect {name!r}; expected one of {', '.join(EFFECT_TYPES)}")
-    cls = EFFECT_TYPES[name]
-    try:
-        eff = cls(**dict(data))
-    except TypeError as exc:
-        raise ValueError(f"effect {name!r}: {exc}") from None
-    for attr in ("width", "amplitude", "sigma", "k2_per_dps", "sigma_per_sqrt_s"):
-        if hasattr(eff, attr):
-            setattr(eff, attr, _channel_map(getattr(eff, attr)))
-    if isinstance(eff, ThermalLag):
-        for c in eff.channels:
-            if c not in CHANNELS:
-                raise ValueError(f"effect thermal_lag: unknown channel {c!r}")
-        if eff.tau_s <= 0:
-            raise ValueError("effect thermal_lag: tau_s must be > 0")
-    if isinstance(eff, TurnOnBias):
-        try:
-            eff.offsets = {str(int(k)): _channel_map(v) for k, v in (eff.offsets or {}).items()}
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"effect turn_on_bias: offsets must map run numbers to channel offsets ({exc})") from None
-    if isinstance(eff, LeverArm):
-        r = np.asarray(eff.r_m, dtype=float)
-        if r.shape != (3,):
-            raise ValueError("effect lever_arm: r_m must be 3 numbers (metres, body frame)")
-        eff.r_m = r.tolist()
-    if isinstance(eff, GSensitivity):
-        m = np.asarray(eff.matrix_dps_per_g, dtype=float)
-        if m.shape != (3, 3):
-            raise ValueError("effect g_sensitivity: matrix_dps_per_g must be 3x3")
-        eff.matrix_dps_per_g = m.tolist()
-    return eff
+def effect_from_dict(name: str, data: Mapping[str, Any]) -> Effect:
+    """An effect from its JSON parameters, validated (ValueError naming what is wrong)."""
+    return effect_class(name).from_dict(data)
 
 
 def _cubic(c0: float, c1: float, c2: float, c3: float) -> list[float]:

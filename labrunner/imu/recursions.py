@@ -93,3 +93,17 @@ def play_state(temp: np.ndarray, travel: float, h0: float = 0.0, temp0: float | 
     d = temp - prev
     a = np.exp(-np.abs(d) / travel)
     return ltv_first_order(a, (1.0 - a) * np.sign(d), h0)
+
+
+def branch_state(temp_c: np.ndarray, travel_c: float, remounts: np.ndarray | None = None,
+                 via_c: float | None = None) -> np.ndarray:
+    """`play_state` along a temperature path that, with `via_c`, passes through that temperature
+    before the first row and before every row in `remounts` (the unlogged part of a campaign's
+    path: it starts at room temperature, and a remount opens the chamber). Without `via_c` the
+    path starts at the first row, as a fresh simulator stream does."""
+    temp = np.asarray(temp_c, dtype=float)
+    if via_c is None or temp.size == 0:
+        return play_state(temp, travel_c)
+    at = np.unique(np.r_[0, np.asarray(remounts if remounts is not None else [], dtype=np.int64)])
+    h = play_state(np.insert(temp, at, via_c), travel_c)
+    return np.delete(h, at + np.arange(at.size))

@@ -11,7 +11,7 @@ from labrunner.discrepancy.crossval import cross_validate
 from labrunner.discrepancy.drift import FoldFilters, riccati
 from labrunner.discrepancy.measurements import Measurements
 from labrunner.discrepancy.temperature import ROOM_C, branch_state, dequantize
-from labrunner.discrepancy.terms import offsets_roughness, turn_on_sigma
+from labrunner.imu.effects.turn_on_bias import offsets_roughness, turn_on_sigma
 from labrunner.imu.model import ImuInputs, ImuModel, default_imu_model
 from labrunner.imu.recursions import play_state
 
