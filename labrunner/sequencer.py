@@ -6,6 +6,11 @@ safe_stop -> aborted, and failed. Each state has a handler that does that state'
 work through the instrument interfaces (`drivers.protocols`) and fires the next
 transition; every transition is an event row with its time.
 
+The runner only sequences. What it judges on the way is asked of small objects in
+`labrunner.runner`: the soak window (`soak`), the monitor means (`monitor`), the
+interlocks (`interlocks`), the fault policy and auto-resume (`fault_policy`) and the
+one safe stop (`safe_stop`).
+
 Resuming is running the same machine again: it starts at idle and fires real
 transitions (preflight, mounting for the first step not yet recorded, ...), so
 every callback runs and nothing is entered by assignment.
@@ -18,22 +23,30 @@ safe state: table stopped, chamber to the remount (ambient) temperature.
 
 from __future__ import annotations
 
-import math
+import logging
 import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
-from transitions import Machine
+from transitions import EventData, Machine
 
+from labrunner.clock import Clock
 from labrunner.drivers.errors import InstrumentError, LimitError
 from labrunner.drivers.protocols import ImuRecord
 from labrunner.drivers.protocols import Instruments as Lab
-from labrunner.procedure import Procedure, Step
+from labrunner.procedure import Procedure, ProcedureModel, Step
+from labrunner.runner.fault_policy import Action, AutoResume, FaultPolicy
+from labrunner.runner.interlocks import Interlocks, Readings
+from labrunner.runner.monitor import ImuMonitor
 from labrunner.runner.safe_stop import safe_stop
+from labrunner.runner.soak import SoakWindow, soak_timeout
 from labrunner.store import SampleBlock, Store
+
+log = logging.getLogger(__name__)
 
 STATES = ["idle", "preflight", "mounting", "ramping", "soaking", "rate_settling", "recording", "fitting", "done",
           "paused", "safe_stop", "aborted", "failed"]
@@ -59,12 +72,18 @@ TRANSITIONS = [
     {"trigger": "stopped_safely", "source": "safe_stop", "dest": "aborted"},
     {"trigger": "fail", "source": ACTIVE + ["safe_stop", "idle"], "dest": "failed"},
 ]
+TABLE_SETTLE_S = 120.0  # a table that has not settled at its rate by then has a drive problem
 
 Progress = Callable[["CampaignRunner"], None]
+Trigger = Callable[[], bool]
 
 
 class _Stop(Exception):
     """Leaves a state handler because a pause or abort took over."""
+
+
+class NoCurrentStep(RuntimeError):
+    """A handler asked for the current step when every step is recorded (a sequencing bug)."""
 
 
 @dataclass
@@ -89,19 +108,39 @@ class RunStats:
 class CampaignRunner:
     """Runs (or resumes) one campaign of a store on a lab."""
 
+    # Bound by `transitions.Machine` (declared, not defined, so the machine can bind them).
+    state: str
+    start: Trigger
+    preflight_ok: Trigger
+    resume_mounted: Trigger
+    mounted: Trigger
+    at_setpoint: Trigger
+    soaked: Trigger
+    settled: Trigger
+    next_rate: Trigger
+    record_again: Trigger
+    next_temperature: Trigger
+    next_orientation: Trigger
+    all_recorded: Trigger
+    fitted: Trigger
+    pause: Trigger
+    resume: Trigger
+    abort: Trigger
+    stopped_safely: Trigger
+    fail: Trigger
+
     def __init__(self, procedure: Procedure, lab: Lab, store: Store, campaign_id: int, *,
-                 progress: Progress | None = None, fit_out_dir: Any = None,
-                 crash_hook: Callable[[str], None] | None = None, auto_resume_s: float | None = None,
-                 max_auto_resumes: int = 200) -> None:
+                 progress: Progress | None = None, fit_out_dir: str | Path | None = None,
+                 auto_resume_s: float | None = None, max_auto_resumes: int = 200) -> None:
         self.procedure = procedure
-        self.p = procedure.model
+        self.p: ProcedureModel = procedure.model
         self.lab = lab
+        self.clock: Clock = lab.clock
         self.store = store
-        self.cid = campaign_id
+        self.cid: int = campaign_id
         self.plan: list[Step] = procedure.steps()
         self.progress = progress
         self.fit_out_dir = fit_out_dir
-        self.crash_hook = crash_hook  # tests: called at named points to simulate a kill there
         self.control = Control()
         self.stats = RunStats()
         info = store.campaign(campaign_id)
@@ -114,12 +153,11 @@ class CampaignRunner:
         self.fit_ok = False
         self._last_heartbeat = 0.0
         self._last_request_check = 0.0
-        # Dry runs with injected faults: after a pause caused by a fault, resume after this much
-        # clock time, as the operator would, through real transitions (paused -> preflight).
-        self.auto_resume_s = auto_resume_s
-        self.max_auto_resumes = max_auto_resumes
-        self.auto_resumes = 0
-        self._paused_by_fault = False
+        self._soak_started: float | None = None  # when the current ramp began: the soak's deadline counts from it
+        self.interlocks = Interlocks.from_safety(self.p.safety)
+        self.policy = FaultPolicy(self.p.faults)
+        self.auto_resume = AutoResume(auto_resume_s, max_auto_resumes)
+        self.monitor = ImuMonitor(lab.imu, lab.chamber, lambda: self.t, self.p.monitor.average_s)
         self._retrying: dict[str, str] = {}  # instrument -> last retried error, until it answers again
         self.fault_injector: Any = None
         for inst in (lab.chamber, lab.table):
@@ -130,15 +168,42 @@ class CampaignRunner:
         self.machine = Machine(model=self, states=STATES, transitions=TRANSITIONS, initial="idle",
                                auto_transitions=False, after_state_change="_log_transition", send_event=True)
 
+    # --- what the CLI and the API read ---------------------------------------------------------
+
+    @property
+    def auto_resume_s(self) -> float | None:
+        return self.auto_resume.delay_s
+
+    @property
+    def max_auto_resumes(self) -> int:
+        return self.auto_resume.max_resumes
+
+    @property
+    def auto_resumes(self) -> int:
+        return self.auto_resume.resumes
+
+    @property
+    def step(self) -> Step:
+        """The step being worked on; every handler before fitting has one."""
+        if self.k is None:
+            raise NoCurrentStep(f"campaign {self.cid}: no current step in state {self.state} (all steps recorded)")
+        return self.plan[self.k]
+
+    def done_steps(self) -> int:
+        return len(self.plan) if self.k is None else self.k
+
+    def current_step(self) -> Step | None:
+        return None if self.k is None else self.plan[self.k]
+
     # --- time, events, requests ------------------------------------------------------------
 
     @property
     def t(self) -> float:
         """Campaign time, s."""
-        return self.lab.clock.now() - self.t_zero
+        return self.clock.now() - self.t_zero
 
-    def _log_transition(self, event_data: Any = None) -> None:
-        src = event_data.transition.source if event_data is not None else "?"
+    def _log_transition(self, event_data: EventData | None = None) -> None:
+        src = event_data.transition.source if event_data is not None and event_data.transition else "?"
         self.store.event(self.cid, self.t, "transition", f"{src} -> {self.state}", state=self.state, step_idx=self.k)
         self._report()
 
@@ -191,7 +256,7 @@ class CampaignRunner:
                 self.request_pause("pause requested by labrunner")
             if now - self._last_heartbeat > 2.0:
                 self._last_heartbeat = now
-                self.store.heartbeat(self.cid, self.lab.clock.now())
+                self.store.heartbeat(self.cid, self.clock.now())
         if self.control.abort:
             self.event("operator", self.control.reason)
             self.abort()
@@ -203,7 +268,7 @@ class CampaignRunner:
 
     def _wait(self, seconds: float) -> None:
         """Let clock time pass, looking at requests at least every real second."""
-        clock = self.lab.clock
+        clock = self.clock
         if clock.virtual:
             clock.sleep(seconds)
             self._check_requests(allow_pause=False)
@@ -217,11 +282,15 @@ class CampaignRunner:
             clock.sleep(min(remaining, per_real_second))
             self._check_requests(allow_pause=False)
 
+    def _grace(self, seconds: float) -> float:
+        """Real seconds to wait for `seconds` of IMU frames to arrive."""
+        return 0.5 if self.clock.virtual else self.clock.wall_seconds(seconds) + 5.0
+
     # --- the loop ------------------------------------------------------------------------------
 
     def run(self) -> str:
         """Run until done, paused, aborted or failed; returns the final state."""
-        self.store.set_status(self.cid, "running", clock_last=self.lab.clock.now(), pid=os.getpid())
+        self.store.set_status(self.cid, "running", clock_last=self.clock.now(), pid=os.getpid())
         self.event("info", f"campaign {'resumed' if self.k not in (None, 0) else 'started'} at step {self.k}",
                    mode=self.store.campaign(self.cid).mode)
         self.start()
@@ -230,12 +299,11 @@ class CampaignRunner:
                 if self.state == "paused" and self.control.abort:
                     self.abort()  # a second Ctrl-C (or labrunner abort) right after the pause took effect
                     continue
-                if (self.state == "paused" and self._paused_by_fault and self.auto_resume_s is not None
-                        and self.auto_resumes < self.max_auto_resumes):
-                    self.lab.clock.sleep(self.auto_resume_s)
-                    self.auto_resumes += 1
-                    self._paused_by_fault = False
-                    self.event("recovery", f"resuming after a fault pause (auto-resume {self.auto_resumes})")
+                if self.state == "paused" and self.auto_resume.due():
+                    assert self.auto_resume.delay_s is not None
+                    self.clock.sleep(self.auto_resume.delay_s)
+                    n = self.auto_resume.take()
+                    self.event("recovery", f"resuming after a fault pause (auto-resume {n})")
                     self.resume()
                     continue
                 break
@@ -250,29 +318,57 @@ class CampaignRunner:
                 self._fault(exc)
             except Exception as exc:  # a bug or an unforeseen failure: leave the lab safe, keep the data
                 self.last_error = f"{type(exc).__name__}: {exc}"
+                log.error("unexpected error in %s: %s", self.state, self.last_error,
+                          exc_info=log.isEnabledFor(logging.DEBUG))
                 self.event("fault", f"unexpected error in {self.state}: {self.last_error}")
                 if self.state in ACTIVE:
                     self.abort()
                 else:
                     self.fail()
-        final = {"done": "done", "paused": "paused", "aborted": "aborted", "failed": "failed"}[self.state]
-        self.store.set_status(self.cid, final, clock_last=self.lab.clock.now(), pid=None)
+        final = self.state
+        self.store.set_status(self.cid, final, clock_last=self.clock.now(), pid=None)
         self.store.request(self.cid, None)
         self._report()
         return final
+
+    def _act(self, action: Action, *, by_fault: bool = True) -> None:
+        """Carry out a pause, abort or fail decided by the fault policy."""
+        if action == "fail":
+            self.fail()
+        elif action == "abort":
+            self.abort()
+        else:
+            if by_fault:
+                self.auto_resume.fault_paused()
+            self.pause()
 
     def _fault(self, exc: InstrumentError, hard: bool = False) -> None:
         """An instrument failed after its bounded retries: apply the procedure's fault policy."""
         self.stats.faults += 1
         self.last_error = str(exc)
         self.event("fault", str(exc), instrument=exc.instrument, address=exc.address, state=self.state)
-        if self.state == "safe_stop":
-            self.fail()
-        elif hard or self.p.faults.policy == "abort":
+        self._act(self.policy.on_instrument_error(hard=hard, in_safe_stop=self.state == "safe_stop"))
+
+    def _soak_timeout(self, what: str) -> bool:
+        """The chamber did not stabilise in time: apply soak.on_timeout. True means carry on."""
+        target = self.p.remount_c if what == "remount" else self.step.temperature_c
+        verdict = soak_timeout(self.p.soak, what, target)
+        self.event(verdict.event_kind, verdict.message)
+        if verdict.carry_on:
+            return True
+        self.last_error = verdict.message
+        self._act("pause" if verdict.action == "pause" else "abort")
+        return False
+
+    def _interlocks(self, *, chamber_c: float | None = None, rate_dps: float | None = None,
+                    imu_temp: float | None = None) -> None:
+        """Ask the interlocks about what was just read; a trip goes to the safe stop."""
+        trip = self.interlocks.check(Readings(chamber_c=chamber_c, rate_dps=rate_dps, imu_temp_c=imu_temp))
+        if trip is not None:
+            self.last_error = f"interlock: {trip.reason}"
+            self.event("interlock", trip.reason)
             self.abort()
-        else:
-            self._paused_by_fault = True
-            self.pause()
+            raise _Stop
 
     # --- state handlers --------------------------------------------------------------------------
 
@@ -314,19 +410,19 @@ class CampaignRunner:
         self._check_requests()
         if self.k is None:
             self.all_recorded()
-        elif self.mounted_orientation == self.plan[self.k].orientation:
+        elif self.mounted_orientation == self.step.orientation:
             self.resume_mounted()  # resumed in the same session: the IMU is still mounted and powered
         else:
             self.preflight_ok()
 
     def _do_mounting(self) -> None:
-        step = self.plan[self.k]  # type: ignore[index]
+        step = self.step
         lab = self.lab
         lab.table.stop()
         # The operator opens the chamber: bring it near room temperature first.
         lab.chamber.set_setpoint(self.p.remount_c)
-        if not self._wait_chamber(self.p.remount_c, max(2.0, self.p.soak.tolerance_c), self.p.soak.max_wait_s,
-                                  "remount") and not self._soak_timeout("remount"):
+        if not self._wait_chamber(self.p.remount_c, max(2.0, self.p.soak.tolerance_c), self.p.soak.max_wait_s) \
+                and not self._soak_timeout("remount"):
             return
         prompt = self.procedure.prompt_for(step.orientation)
         self.event("operator", f"remount: {prompt}", orientation=step.orientation)
@@ -340,27 +436,28 @@ class CampaignRunner:
         self.mounted()
 
     def _do_ramping(self) -> None:
-        step = self.plan[self.k]  # type: ignore[index]
+        step = self.step
         self.lab.chamber.set_setpoint(step.temperature_c)
         self.event("info", f"setpoint {step.temperature_c} C", setpoint_c=step.temperature_c)
         self._soak_started = self.t
-        ok = self._wait_chamber(step.temperature_c, self.p.soak.tolerance_c, self.p.soak.max_wait_s, "ramp")
-        if not ok and not self._soak_timeout("ramp"):
+        if not self._wait_chamber(step.temperature_c, self.p.soak.tolerance_c, self.p.soak.max_wait_s) \
+                and not self._soak_timeout("ramp"):
             return
         self.at_setpoint()
 
     def _do_soaking(self) -> None:
-        step = self.plan[self.k]  # type: ignore[index]
+        step = self.step
         s = self.p.soak
-        window: list[tuple[float, float, float]] = []  # (t, chamber, imu)
-        deadline = getattr(self, "_soak_started", self.t) + s.max_wait_s
+        window = SoakWindow(s, step.temperature_c)
+        started = self._soak_started if self._soak_started is not None else self.t
+        deadline = started + s.max_wait_s
         while True:
             pv = self.lab.chamber.read_temperature()
             sample = self.lab.imu.latest()
             imu_t = sample.temp_c if sample is not None else float("nan")
             self._interlocks(chamber_c=pv, imu_temp=imu_t)
-            window.append((self.t, pv, imu_t))
-            if self._stable(window, step.temperature_c):
+            window.add(self.t, pv, imu_t)
+            if window.stable():
                 self.event("info", f"soaked at {step.temperature_c} C: chamber {pv:.2f} C, IMU {imu_t:.2f} C",
                            chamber_c=pv, imu_temp_c=imu_t)
                 self.soaked()
@@ -373,40 +470,7 @@ class CampaignRunner:
             self._check_requests()
             self._monitor(s.poll_s)
 
-    def _stable(self, history: list[tuple[float, float, float]], setpoint: float) -> bool:
-        """Stable when the readings of the last stable_window_s (and the history covers that long) hold."""
-        s = self.p.soak
-        if not history or history[-1][0] - history[0][0] < s.stable_window_s - 1e-6:
-            return False
-        start = history[-1][0] - s.stable_window_s - 1e-6
-        window = [w for w in history if w[0] >= start]
-        chamber = np.array([w[1] for w in window])
-        if np.any(np.abs(chamber - setpoint) > s.tolerance_c):
-            return False
-        if s.sensor == "imu":
-            imu = np.array([w[2] for w in window])
-            return bool(np.all(np.isfinite(imu)) and imu.max() - imu.min() <= s.tolerance_c)
-        return True
-
-    def _soak_timeout(self, what: str) -> bool:
-        """The chamber did not stabilise in time: apply soak.on_timeout. True means carry on."""
-        policy = self.p.soak.on_timeout
-        step = self.plan[self.k]  # type: ignore[index]
-        target = self.p.remount_c if what == "remount" else step.temperature_c
-        msg = (f"{what} at {target} C did not stabilise within soak.max_wait_s "
-               f"({self.p.soak.max_wait_s:.0f} s); on_timeout: {policy}")
-        self.event("warning" if policy == "continue" else "fault", msg)
-        if policy == "continue":
-            return True
-        self.last_error = msg
-        if policy == "pause":
-            self._paused_by_fault = True
-            self.pause()
-        else:
-            self.abort()
-        return False
-
-    def _wait_chamber(self, target: float, tolerance: float, max_wait: float, what: str) -> bool:
+    def _wait_chamber(self, target: float, tolerance: float, max_wait: float) -> bool:
         """Poll the chamber until it is within tolerance of target; False on timeout."""
         t_end = self.t + max_wait
         while True:
@@ -421,42 +485,21 @@ class CampaignRunner:
 
     def _monitor(self, seconds: float) -> None:
         """Let time pass while ramping/soaking; keep 1 s means of the IMU as a monitor block."""
-        imu = self.lab.imu
         if not self.p.monitor.enabled or self.mounted_orientation is None:
             self._wait(seconds)
             return
-        start = imu.begin_record()
-        t0 = self.t
-        chamber = [(t0, self.lab.chamber.read_temperature())]
+        window = self.monitor.begin()
         self._wait(seconds)
-        n = int(round(seconds * imu.rate_hz))
-        rec = imu.end_record(start, n, timeout_s=self._grace(seconds))
-        chamber.append((self.t, self.lab.chamber.read_temperature()))
-        if len(rec) == 0:
-            return
-        avg = max(1, int(round(self.p.monitor.average_s * imu.rate_hz)))
-        offs = rec.counter - (start + 1)
-        bins = offs // avg
-        uniq, inv, counts = np.unique(bins, return_inverse=True, return_counts=True)
-
-        def means(a: np.ndarray) -> np.ndarray:
-            out = np.zeros((uniq.size,) + a.shape[1:])
-            np.add.at(out, inv, a)
-            return out / counts.reshape((-1,) + (1,) * (a.ndim - 1))
-
-        t_rows = means((t0 + (offs + 1) / imu.rate_hz).astype(float))
-        block = SampleBlock(kind="monitor", step_idx=None, run=self.run_no, orientation=self.mounted_orientation,
-                            t0_s=float(t_rows[0]), rate_hz=1.0 / self.p.monitor.average_s,
-                            counter=np.rint((t_rows - t_rows[0]) / self.p.monitor.average_s).astype(np.int64),
-                            accel_g=means(rec.accel_g), gyro_dps=means(rec.gyro_dps), temp_c=means(rec.temp_c),
-                            chamber=np.array(chamber), table=np.array([(t0, 0.0)]))
-        self.store.save_monitor(self.cid, block)
+        block = self.monitor.end(window, seconds, timeout_s=self._grace(seconds), run=self.run_no,
+                                 orientation=self.mounted_orientation)
+        if block is not None:
+            self.store.save_monitor(self.cid, block)
 
     def _do_rate_settling(self) -> None:
-        step = self.plan[self.k]  # type: ignore[index]
+        step = self.step
         table = self.lab.table
         table.jog(step.rate_dps)
-        t_end = self.t + 120.0
+        t_end = self.t + TABLE_SETTLE_S
         while True:
             st = table.status()
             if st.fault:
@@ -464,20 +507,16 @@ class CampaignRunner:
             if st.settled:
                 break
             if self.t > t_end:
-                raise InstrumentError(table.name, table.address, f"did not settle at {step.rate_dps} deg/s within 120 s")
+                raise InstrumentError(table.name, table.address,
+                                      f"did not settle at {step.rate_dps} deg/s within {TABLE_SETTLE_S:.0f} s")
             self._wait(0.5)
         self._wait(self.p.settle_s)
         self.settled()
 
-    def _grace(self, seconds: float) -> float:
-        clock = self.lab.clock
-        return 0.5 if clock.virtual else clock.wall_seconds(seconds) + 5.0
-
     def _do_recording(self) -> None:
-        step = self.plan[self.k]  # type: ignore[index]
+        step = self.step
         lab = self.lab
         imu = lab.imu
-        n = self.procedure.frames_per_record
         self.store.note_attempt(self.cid, step.index)
         chamber = [(self.t, lab.chamber.read_temperature())]
         table = [(self.t, lab.table.velocity())]
@@ -496,9 +535,7 @@ class CampaignRunner:
                 # The table left its rate (a drive fault): this record is not what the step asks for.
                 raise InstrumentError(lab.table.name, lab.table.address, f"table at {rate:+.4f} deg/s while "
                                       f"recording at {step.rate_dps:+g} deg/s; the step will be recorded again")
-        rec = imu.end_record(start, n, timeout_s=self._grace(self.p.record_s))
-        if self.crash_hook:
-            self.crash_hook("record")
+        rec = imu.end_record(start, self.procedure.frames_per_record, timeout_s=self._grace(self.p.record_s))
         if rec.dropped > self.p.faults.max_dropped_frames:
             self._record_again(step, rec)
             return
@@ -508,32 +545,30 @@ class CampaignRunner:
                             t0_s=t_first + (rec.counter[0] - (start + 1)) / imu.rate_hz if len(rec) else t_first,
                             rate_hz=imu.rate_hz, counter=rec.counter, accel_g=rec.accel_g, gyro_dps=rec.gyro_dps,
                             temp_c=rec.temp_c, chamber=np.array(chamber), table=np.array(table), lsb=rec.lsb)
-        hook = (lambda: self.crash_hook("commit")) if self.crash_hook else None
         self.store.commit_record(
             self.cid, block, dropped=rec.dropped, corrupt=rec.corrupt, t_end=self.t,
             event_message=f"step {step.index} recorded: {step.orientation} {step.temperature_c} C {step.rate_dps:+g} "
-                          f"deg/s, {len(rec)} samples", detail={"dropped": rec.dropped, "corrupt": rec.corrupt},
-            _crash_hook=hook)
+                          f"deg/s, {len(rec)} samples", detail={"dropped": rec.dropped, "corrupt": rec.corrupt})
         self.stats.steps_recorded += 1
         self.stats.samples += len(rec)
         self._advance()
 
     def _record_again(self, step: Step, rec: ImuRecord) -> None:
+        """Frames were lost: record the step again, or (lost every time) let the fault policy decide."""
         attempts = int(self.store.steps_frame(self.cid).set_index("idx").loc[step.index, "attempts"])
-        msg = (f"step {step.index}: {rec.dropped} of {rec.expected} frames lost (allowed "
-               f"{self.p.faults.max_dropped_frames}); recording again")
-        if attempts > self.p.faults.max_rerecords:
-            err = InstrumentError(self.lab.imu.name, self.lab.imu.address,
+        if self.policy.on_record(rec.dropped, attempts) == "give_up":
+            raise InstrumentError(self.lab.imu.name, self.lab.imu.address,
                                   f"step {step.index}: frames lost in {attempts} attempts ({rec.dropped} of "
                                   f"{rec.expected} in the last)")
-            raise err
-        self.event("fault", msg, dropped=rec.dropped, corrupt=rec.corrupt, attempt=attempts)
+        self.event("fault", f"step {step.index}: {rec.dropped} of {rec.expected} frames lost (allowed "
+                            f"{self.p.faults.max_dropped_frames}); recording again",
+                   dropped=rec.dropped, corrupt=rec.corrupt, attempt=attempts)
         self.stats.steps_rerecorded += 1
         self.record_again()
 
     def _advance(self) -> None:
         """After a committed record: pause point, then on to the next step."""
-        prev = self.plan[self.k]  # type: ignore[index]
+        prev = self.step
         self.k = self.store.next_step(self.cid)
         self._report()
         self._check_requests()
@@ -541,7 +576,7 @@ class CampaignRunner:
             self.lab.table.stop()
             self.all_recorded()
             return
-        nxt = self.plan[self.k]
+        nxt = self.step
         if nxt.orientation != self.mounted_orientation:
             self.next_orientation()
         elif nxt.temperature_c != prev.temperature_c or nxt.orientation_index != prev.orientation_index:
@@ -565,13 +600,14 @@ class CampaignRunner:
                 self.fit_ok = True
                 self.event("info", "fit stored", out_dir=str(self.fit_out_dir) if self.fit_out_dir else None)
             except Exception as exc:  # the data are safe; a fit can be run again with `labrunner fit`
+                log.warning("fit failed: %s", exc, exc_info=log.isEnabledFor(logging.DEBUG))
                 self.event("warning", f"fit failed: {type(exc).__name__}: {exc}")
                 self.fit_summary = f"fit failed: {exc} (run `labrunner fit` on the database to retry)"
         self.fitted()
 
     def _do_safe_stop(self) -> None:
         """Table stopped, chamber to the remount temperature; keep trying for a while, the lab must be safe."""
-        result = safe_stop(self.lab.table, self.lab.chamber, self.p.remount_c, self.lab.clock,
+        result = safe_stop(self.lab.table, self.lab.chamber, self.p.remount_c, self.clock,
                            on_retry=lambda problems: self.event(
                                "fault", "safe state not reached yet, trying again: " + "; ".join(problems)))
         if not result.reached:
@@ -587,30 +623,3 @@ class CampaignRunner:
             self.lab.table.stop()
         except Exception as exc:
             self.event("warning", f"could not stop the table on pause: {exc}")
-
-    # --- interlocks ----------------------------------------------------------------------------------
-
-    def _interlocks(self, *, chamber_c: float | None = None, rate_dps: float | None = None,
-                    imu_temp: float | None = None) -> None:
-        s = self.p.safety
-        trip = None
-        if chamber_c is not None and not (s.chamber_min_c <= chamber_c <= s.chamber_max_c):
-            trip = f"chamber at {chamber_c:.1f} C, outside the safety limits {s.chamber_min_c}..{s.chamber_max_c} C"
-        elif rate_dps is not None and abs(rate_dps) > s.max_rate_dps * 1.01:
-            trip = f"table at {rate_dps:.2f} deg/s, above the limit {s.max_rate_dps} deg/s"
-        elif imu_temp is not None and math.isfinite(imu_temp) and imu_temp > s.imu_max_temp_c:
-            trip = f"IMU at {imu_temp:.1f} C, above its rating {s.imu_max_temp_c} C"
-        if trip:
-            self.last_error = f"interlock: {trip}"
-            self.event("interlock", trip)
-            self.abort()
-            raise _Stop
-
-    # --- progress ------------------------------------------------------------------------------------
-
-    def done_steps(self) -> int:
-        return len(self.plan) if self.k is None else self.k
-
-    def current_step(self) -> Step | None:
-        return None if self.k is None else self.plan[self.k]
-

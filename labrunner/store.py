@@ -386,7 +386,7 @@ class Store:
         }
 
     def commit_record(self, campaign_id: int, block: SampleBlock, *, dropped: int, corrupt: int, t_end: float,
-                      event_message: str, detail: dict[str, Any] | None = None, _crash_hook: Any = None) -> None:
+                      event_message: str, detail: dict[str, Any] | None = None) -> None:
         """Store a record step's samples, mark the step done and log it: all or nothing."""
         assert block.kind == "record" and block.step_idx is not None
         chamber_mean = float(np.mean(block.chamber[:, 1])) if block.chamber.size else None
@@ -397,8 +397,6 @@ class Store:
                 dropped=dropped, corrupt=corrupt, imu_temp_c=float(np.mean(block.temp_c)) if len(block) else None,
                 chamber_c=chamber_mean))
             self._event(conn, campaign_id, t_end, "record", event_message, step_idx=block.step_idx, detail=detail)
-            if _crash_hook is not None:
-                _crash_hook()  # tests: die inside the transaction, before it commits
 
         log.debug("campaign %d: step %d committed, %d samples (%d dropped, %d corrupt)", campaign_id,
                   block.step_idx, len(block), dropped, corrupt)

@@ -6,12 +6,9 @@ Argument parsing and printing only; the campaign is composed, run and read by `l
 from __future__ import annotations
 
 import argparse
-import os
-import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 from labrunner import api
 from labrunner.commands.progress import ProgressBar
@@ -67,31 +64,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.set_defaults(func=cmd_export)
 
 
-def _crash_hook() -> Any:
-    """LABRUNNER_CRASH_AT=point:N kills this process (SIGKILL) the N-th time it reaches point (tests)."""
-    spec = os.environ.get("LABRUNNER_CRASH_AT")
-    if not spec:
-        return None
-    point, _, nth = spec.partition(":")
-    target = int(nth or 1)
-    seen = {"n": 0}
-
-    def hook(where: str) -> None:
-        if where == point:
-            seen["n"] += 1
-            if seen["n"] == target:
-                os.kill(os.getpid(), signal.SIGKILL)
-
-    return hook
-
-
 # --- run, resume ---------------------------------------------------------------------------------------
 
 
 def _execute(session: api.Session, quiet: bool, db: Path) -> int:
-    hook = _crash_hook()
-    if hook is not None and session.runner is not None:
-        session.runner.crash_hook = hook  # type: ignore[attr-defined]
     bar = ProgressBar(session.steps_total, quiet)
     try:
         r = session.execute(None if quiet else bar, handle_signals=True)

@@ -39,6 +39,13 @@ def cli(*args, env=None, timeout=300, check=None):
     return proc
 
 
+def crashing_cli(at, *args, timeout=300):
+    """Run `labrunner ARGS` in a subprocess that SIGKILLs itself at `at` ("record:N" or "commit:N",
+    see crashing_cli.py)."""
+    return subprocess.run([sys.executable, str(Path(__file__).with_name("crashing_cli.py")), at, *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout)
+
+
 def popen(*args, env=None):
     full_env = dict(os.environ)
     full_env.update(env or {})

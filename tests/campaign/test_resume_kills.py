@@ -7,7 +7,7 @@ import time
 
 from labrunner.store import Store
 
-from .conftest import cli, popen
+from .conftest import cli, crashing_cli, popen
 
 
 def _summary(db):
@@ -36,9 +36,14 @@ def test_killed_anywhere_and_resumed_equals_uninterrupted(tmp_path, tiny):
     rng = random.Random(20261122)
     kills = []
     # The first run dies mid-commit of its 3rd step (inside the SQLite transaction).
-    proc = cli("run", tiny, "--sim", "--db", db, "--quiet", env={"LABRUNNER_CRASH_AT": "commit:3"})
-    assert proc.returncode == -signal.SIGKILL
+    proc = crashing_cli("commit:3", "run", tiny, "--sim", "--db", db, "--quiet")
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
     kills.append("commit:3")
+    # Killed inside the third step's transaction: its rows were written but never committed.
+    with Store.open_existing(db) as store:
+        cid = store.resolve(None)
+        assert store.next_step(cid) == 2
+        assert not store.events_frame(cid).message.str.startswith("step 2 recorded").any()
     # Then resume, killing again at chosen points (mid-record: samples read, not yet stored;
     # mid-commit) and at random moments (kill -9), until a dozen kills have landed.
     cycle = ["record:2", "random", "commit:1", "random", "record:3", "random", "commit:2", "random"]
@@ -57,9 +62,14 @@ def test_killed_anywhere_and_resumed_equals_uninterrupted(tmp_path, tiny):
             assert p.returncode in (0, -signal.SIGKILL)
             assert p.returncode != 0, "finished before a dozen kills: make the campaign longer"
         else:
-            proc = cli("resume", db, "--quiet", env={"LABRUNNER_CRASH_AT": what})
+            with Store.open_existing(db) as store:
+                before = store.next_step(store.resolve(None))
+            proc = crashing_cli(what, "resume", db, "--quiet")
             assert proc.returncode == -signal.SIGKILL, "finished early or failed: " + proc.stderr[-2000:]
             kills.append(what)
+            # "record:N"/"commit:N" die before the N-th record of the session is stored.
+            with Store.open_existing(db) as store:
+                assert store.next_step(store.resolve(None)) == before + int(what.split(":")[1]) - 1
     proc = cli("resume", db, "--quiet")
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert any(k.startswith("commit") for k in kills) and any(k.startswith("record") for k in kills)

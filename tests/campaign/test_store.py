@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from sqlalchemy import event
 from sqlalchemy.exc import IntegrityError
 
 from labrunner.procedure import parse_procedure
@@ -36,11 +37,15 @@ def store(tmp_path):
 def test_a_step_is_all_or_nothing(store):
     s, cid = store
 
-    def die():
-        raise Crash
+    def die(_conn):
+        raise Crash  # as a kill inside the transaction: rows written, commit never reached
 
-    with pytest.raises(Crash):
-        s.commit_record(cid, _block(0), dropped=0, corrupt=0, t_end=4.0, event_message="x", _crash_hook=die)
+    event.listen(s.engine, "commit", die)
+    try:
+        with pytest.raises(Crash):
+            s.commit_record(cid, _block(0), dropped=0, corrupt=0, t_end=4.0, event_message="x")
+    finally:
+        event.remove(s.engine, "commit", die)
     assert s.next_step(cid) == 0
     assert s.samples_frame(cid).empty
     assert s.events_frame(cid).empty

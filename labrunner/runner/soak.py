@@ -1,0 +1,93 @@
+"""Soak judgement: when the chamber (and the IMU) count as stable, and what a soak timeout does.
+
+A soak is stable when the readings of the last `stable_window_s` all hold: the chamber within
+`tolerance_c` of the setpoint and, with `sensor: imu`, the IMU temperature's spread within
+`tolerance_c` too (the IMU lags the air, so a settled chamber alone does not mean a settled IMU).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Literal
+
+from labrunner.procedure import Soak
+
+log = logging.getLogger(__name__)
+
+_EPS_S = 1e-6  # polls land on whole seconds; do not miss a window by rounding
+
+
+@dataclass(frozen=True)
+class SoakReading:
+    t_s: float
+    chamber_c: float
+    imu_c: float  # NaN when the IMU gave no sample
+
+
+class SoakWindow:
+    """The readings of one soak, judged against its setpoint."""
+
+    def __init__(self, soak: Soak, setpoint_c: float) -> None:
+        self.soak = soak
+        self.setpoint_c = setpoint_c
+        self._first_t: float | None = None
+        self._readings: deque[SoakReading] = deque()
+
+    def add(self, t_s: float, chamber_c: float, imu_c: float) -> None:
+        if self._first_t is None:
+            self._first_t = t_s
+        self._readings.append(SoakReading(t_s, chamber_c, imu_c))
+        # Readings older than a window before the newest can never be judged again.
+        while self._readings and self._readings[0].t_s < t_s - self.soak.stable_window_s - _EPS_S:
+            self._readings.popleft()
+
+    def covered_s(self) -> float:
+        """How long the readings span, from the first of the soak to the newest."""
+        if self._first_t is None:
+            return 0.0
+        return self._readings[-1].t_s - self._first_t
+
+    def stable(self) -> bool:
+        """Stable once the soak has lasted a window and every reading of the last window holds."""
+        s = self.soak
+        if self._first_t is None or self.covered_s() < s.stable_window_s - _EPS_S:
+            return False
+        window = list(self._readings)
+        if any(abs(r.chamber_c - self.setpoint_c) > s.tolerance_c for r in window):
+            return False
+        if s.sensor == "imu":
+            imu = [r.imu_c for r in window]
+            return all(math.isfinite(v) for v in imu) and max(imu) - min(imu) <= s.tolerance_c
+        return True
+
+
+TimeoutAction = Literal["continue", "pause", "abort"]
+
+
+@dataclass(frozen=True)
+class SoakTimeout:
+    """What soak.on_timeout says when the chamber did not stabilise in time."""
+
+    action: TimeoutAction
+    message: str
+
+    @property
+    def carry_on(self) -> bool:
+        return self.action == "continue"
+
+    @property
+    def event_kind(self) -> str:
+        # Carrying on is worth a warning; stopping is a fault (it pauses or aborts the campaign).
+        return "warning" if self.carry_on else "fault"
+
+
+def soak_timeout(soak: Soak, what: str, target_c: float) -> SoakTimeout:
+    """The verdict for a `what` ("ramp", "soak", "remount") at `target_c` that ran out of time."""
+    policy = soak.on_timeout
+    msg = (f"{what} at {target_c} C did not stabilise within soak.max_wait_s "
+           f"({soak.max_wait_s:.0f} s); on_timeout: {policy}")
+    log.info("soak timeout: %s", msg)
+    return SoakTimeout(action=policy, message=msg)
