@@ -52,7 +52,7 @@ STATES = ["idle", "preflight", "mounting", "ramping", "soaking", "rate_settling"
           "paused", "safe_stop", "aborted", "failed"]
 ACTIVE = ["preflight", "mounting", "ramping", "soaking", "rate_settling", "recording", "fitting"]
 TERMINAL = {"done", "paused", "aborted", "failed"}
-TRANSITIONS = [
+TRANSITIONS: list[dict[str, Any]] = [
     {"trigger": "start", "source": "idle", "dest": "preflight"},
     {"trigger": "preflight_ok", "source": "preflight", "dest": "mounting"},
     {"trigger": "resume_mounted", "source": "preflight", "dest": "ramping"},

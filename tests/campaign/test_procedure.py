@@ -39,14 +39,16 @@ rates: {list_dps: [0, 10]}
 
 @pytest.mark.parametrize("text, expect", [
     (BASE + "soak:\n  tolerance_c: 0\n", "x.yaml:6: soak.tolerance_c must be > 0"),
-    (BASE + "soak:\n  tolerance_c: 0.2\n  max_wait_s: soon\n", "x.yaml:7: soak.max_wait_s must be a number, got 'soon'"),
+    (BASE + "soak:\n  tolerance_c: 0.2\n  max_wait_s: soon\n",
+     "x.yaml:7: soak.max_wait_s must be a number, got 'soon'"),
     (BASE + "soak: {on_timeout: explode}\n", "x.yaml:5: soak.on_timeout must be one of 'continue', 'pause' or 'abort'"),
     (BASE.replace("[z_up]", "[z_up, sideways]"), "x.yaml:3: orientations[1].name must be one of"),
     (BASE.replace("[z_up]", "[z_up, z_up]"), "orientation z_up is listed twice"),
     (BASE + "record_s: -1\n", "x.yaml:5: record_s must be > 0"),
     (BASE + "unknown_key: 3\n", "x.yaml:5: unknown_key is not a known key"),
     (BASE.replace("step_c: 10", "step_c: -10"), "x.yaml:2: temperatures.step_c must be > 0"),
-    (BASE.replace("{list_dps: [0, 10]}", "{list_dps: [0, 500]}"), "x.yaml:4: rates 500.0 deg/s exceeds safety.max_rate_dps"),
+    (BASE.replace("{list_dps: [0, 10]}", "{list_dps: [0, 500]}"),
+     "x.yaml:4: rates 500.0 deg/s exceeds safety.max_rate_dps"),
     (BASE.replace("stop_c: 30", "stop_c: 120"), "outside the safety limits"),
     (BASE.replace("name: t\n", ""), "x.yaml:1: name is required"),
     (BASE + "rates: {triangular: {max_dps: 100, step_dps: 30}}\n", "x.yaml:"),

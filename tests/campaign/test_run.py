@@ -45,7 +45,8 @@ def test_quick_procedure_end_to_end_and_export(tmp_path):
 def test_chamber_that_never_stabilises_triggers_the_timeout_policy(tmp_path, tiny):
     sim = tmp_path / "sim.yaml"
     sim.write_text("faults:\n  chamber: {compressor_failed: true}\n")  # it can heat but never cool
-    text = tiny.read_text().replace("list_c: [15, 35]", "list_c: [5, 35]").replace("max_wait_s: 7200", "max_wait_s: 1800")
+    text = (tiny.read_text().replace("list_c: [15, 35]", "list_c: [5, 35]")
+            .replace("max_wait_s: 7200", "max_wait_s: 1800"))
     for policy, code, status in (("abort", 4, "aborted"), ("pause", 3, "paused")):
         proc_file = tmp_path / f"{policy}.yaml"
         proc_file.write_text(text.replace("on_timeout: continue", f"on_timeout: {policy}"))

@@ -19,7 +19,8 @@ def _block(step, n=200, lsb=(0.001, 0.00875, 0.01)):
     rng = np.random.default_rng(step)
     counts = rng.integers(-2000, 2000, size=(n, 7))
     return SampleBlock(kind="record", step_idx=step, run=1, orientation="x_up", t0_s=100.0 * step, rate_hz=50.0,
-                       counter=np.arange(n) + 10 * step, accel_g=counts[:, :3] * lsb[0], gyro_dps=counts[:, 3:6] * lsb[1],
+                       counter=np.arange(n) + 10 * step, accel_g=counts[:, :3] * lsb[0],
+                       gyro_dps=counts[:, 3:6] * lsb[1],
                        temp_c=counts[:, 6] * lsb[2], chamber=np.array([[100.0 * step, 15.0], [100.0 * step + 4, 15.2]]),
                        table=np.array([[100.0 * step, -50.0]]), lsb=lsb)
 
