@@ -27,7 +27,6 @@ import logging
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,9 +38,12 @@ from labrunner.drivers.errors import InstrumentError, LimitError
 from labrunner.drivers.protocols import ImuRecord
 from labrunner.drivers.protocols import Instruments as Lab
 from labrunner.procedure import Procedure, ProcedureModel, Step
+from labrunner.runner.control import Control, RunStats, StoreRequests
+from labrunner.runner.fault_log import FaultLog
 from labrunner.runner.fault_policy import Action, AutoResume, FaultPolicy
 from labrunner.runner.interlocks import Interlocks, Readings
 from labrunner.runner.monitor import ImuMonitor
+from labrunner.runner.preflight import check_chamber, check_table
 from labrunner.runner.safe_stop import safe_stop
 from labrunner.runner.soak import SoakWindow, soak_timeout
 from labrunner.store import SampleBlock, Store
@@ -84,25 +86,6 @@ class _Stop(Exception):
 
 class NoCurrentStep(RuntimeError):
     """A handler asked for the current step when every step is recorded (a sequencing bug)."""
-
-
-@dataclass
-class Control:
-    """Requests reaching the runner: from signal handlers (same process) or the store (another one)."""
-
-    pause: bool = False
-    abort: bool = False
-    reason: str = ""
-
-
-@dataclass
-class RunStats:
-    steps_recorded: int = 0
-    steps_rerecorded: int = 0
-    faults: int = 0
-    recoveries: int = 0
-    samples: int = 0
-    started_wall: float = field(default_factory=time.time)
 
 
 class CampaignRunner:
@@ -151,20 +134,15 @@ class CampaignRunner:
         self.last_error: str | None = None
         self.fit_summary: str | None = None
         self.fit_ok = False
-        self._last_heartbeat = 0.0
-        self._last_request_check = 0.0
+        self.requests = StoreRequests(store, campaign_id, self.clock, self.control)
         self._soak_started: float | None = None  # when the current ramp began: the soak's deadline counts from it
         self.interlocks = Interlocks.from_safety(self.p.safety)
         self.policy = FaultPolicy(self.p.faults)
         self.auto_resume = AutoResume(auto_resume_s, max_auto_resumes)
         self.monitor = ImuMonitor(lab.imu, lab.chamber, lambda: self.t, self.p.monitor.average_s)
-        self._retrying: dict[str, str] = {}  # instrument -> last retried error, until it answers again
-        self.fault_injector: Any = None
-        for inst in (lab.chamber, lab.table):
-            if hasattr(inst, "on_retry"):
-                inst.on_retry = self._on_retry
-        if hasattr(lab.imu, "on_event"):
-            lab.imu.on_event = self._on_imu_event
+        self.fault_log = FaultLog(self.stats, self.event)
+        self.fault_log.attach(lab.chamber, lab.table, lab.imu)
+        self.fault_injector: Any = None  # set by labrunner.fault_plan in dry runs with injected faults
         self.machine = Machine(model=self, states=STATES, transitions=TRANSITIONS, initial="idle",
                                auto_transitions=False, after_state_change="_log_transition", send_event=True)
 
@@ -215,48 +193,16 @@ class CampaignRunner:
             self.progress(self)
 
     def request_pause(self, reason: str = "pause requested") -> None:
-        self.control.pause = True
-        self.control.reason = reason
+        self.control.request_pause(reason)
 
     def request_abort(self, reason: str = "abort requested") -> None:
-        self.control.abort = True
-        self.control.reason = reason
-
-    def _on_retry(self, attempt: int, exc: InstrumentError) -> None:
-        self.stats.faults += 1
-        self._retrying[exc.instrument] = str(exc)
-        self.event("fault", f"retry {attempt}: {exc}", instrument=exc.instrument)
-
-    def _on_imu_event(self, kind: str, message: str) -> None:
-        # Called from the IMU reader thread; the store is safe to use from there.
-        if kind == "imu_link_lost":
-            self.stats.faults += 1
-            self.event("fault", message)
-        else:
-            self.stats.recoveries += 1
-            self.event("recovery", message)
-
-    def _note_recoveries(self) -> None:
-        for instrument in list(self._retrying):
-            self._retrying.pop(instrument)
-            self.stats.recoveries += 1
-            self.event("recovery", f"{instrument} answers again")
+        self.control.request_abort(reason)
 
     def _check_requests(self, *, allow_pause: bool = True) -> None:
         """At a safe point: act on pause/abort requests (from signals, or from the store)."""
-        if self._retrying:
-            self._note_recoveries()
-        now = time.monotonic()
-        if now - self._last_request_check > 0.5:
-            self._last_request_check = now
-            req = self.store.pending_request(self.cid)
-            if req == "abort":
-                self.request_abort("abort requested by labrunner abort")
-            elif req == "pause":
-                self.request_pause("pause requested by labrunner")
-            if now - self._last_heartbeat > 2.0:
-                self._last_heartbeat = now
-                self.store.heartbeat(self.cid, self.clock.now())
+        if self.fault_log.retrying:
+            self.fault_log.note_recoveries()
+        self.requests.poll()
         if self.control.abort:
             self.event("operator", self.control.reason)
             self.abort()
@@ -376,25 +322,11 @@ class CampaignRunner:
         lab = self.lab
         for inst in (lab.chamber, lab.table, lab.imu):
             inst.connect()
-        ident = lab.chamber.identity()
-        lo, hi = lab.chamber.setpoint_range()
-        temps = self.p.temperatures.values() + [self.p.remount_c]
-        outside = [t for t in temps if not lo <= t <= hi]
-        if outside:
-            raise LimitError(lab.chamber.name, lab.chamber.address, f"procedure temperature {outside[0]} C is outside "
-                             f"the controller's setpoint range {lo}..{hi} C")
-        self.event("info", f"chamber {ident.vendor} {ident.model} answers; setpoint range {lo}..{hi} C",
-                   identity=ident.__dict__)
-        tid = lab.table.identity()
-        limits = getattr(lab.table, "limits", None)
-        if limits is not None:
-            max_rate, accel = limits()
-            fastest = max(abs(r) for r in self.p.rates.values())
-            if fastest > max_rate:
-                raise LimitError(lab.table.name, lab.table.address, f"procedure rate {fastest} deg/s exceeds the "
-                                 f"table's maximum {max_rate} deg/s")
-            self.event("info", f"rate table {tid.vendor} {tid.model} answers; max {max_rate} deg/s, {accel} deg/s^2",
-                       identity=tid.__dict__)
+        identity, message = check_chamber(lab.chamber, self.p.temperatures.values() + [self.p.remount_c])
+        self.event("info", message, identity=identity)
+        table = check_table(lab.table, self.p.rates.values())
+        if table is not None:
+            self.event("info", table[1], identity=table[0])
         lab.table.stop()
         self._wait(1.0)
         if lab.imu.latest() is None:
