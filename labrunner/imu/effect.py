@@ -302,6 +302,14 @@ class Effect:
         return cls.regressors(ctx, theta, element_tau)[channel] @ coef
 
     @classmethod
+    def envelope(cls, ctx: FitContext) -> dict[str, np.ndarray]:
+        """channel -> (N, k) row-level columns spanning a rough version of the effect over its
+        parameter range, for the diagnosis's drift estimate (none: {}). For an effect that moves
+        the baseline's temperature: the element's temperature offsets (the diagnosis turns them
+        into error columns with the baseline's fitted temperature derivatives)."""
+        return {}
+
+    @classmethod
     def has_signature(cls) -> bool:
         """Whether `consistent` checks more than the fit (the diagnosis then calls it)."""
         return cls.consistent.__func__ is not Effect.consistent.__func__  # type: ignore[attr-defined]

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from labrunner.sims.campaign import CampaignPlan, synthesize
 from labrunner.imu.model import ACCEL_CHANNELS, CHANNELS, GYRO_CHANNELS, default_imu_model
+from labrunner.sims.campaign import CampaignPlan, synthesize
 from labrunner.sims.world import SimLabConfig
 
 TEMPERATURES = (-25.0, -5.0, 15.0, 35.0, 55.0)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from labrunner.discrepancy import Measurements, check_model, diagnose
-from labrunner.sims.campaign import synthesize
 from labrunner.imu.model import CHANNELS
+from labrunner.sims.campaign import synthesize
 from labrunner.sims.world import SimLabConfig
 
 from .campaigns import DRAWS, campaign, plan_for

@@ -251,8 +251,8 @@ def test_deleting_an_effect_file_removes_it_with_no_other_edit(tmp_path: Path) -
     shutil.copytree(ROOT / "labrunner", copy, ignore=shutil.ignore_patterns("__pycache__"))
     (copy / "imu/effects/warmup.py").unlink()
     script = textwrap.dedent("""
-        import labrunner
-        assert labrunner.__file__.startswith(%r), labrunner.__file__
+        import os, labrunner
+        assert labrunner.__file__.startswith(os.environ["EFFECTS_COPY"]), labrunner.__file__
         from labrunner.imu.model import EFFECT_TYPES, default_imu_model
         from labrunner.imu.cause_table import cause_table
         from labrunner.discrepancy.terms import cause_order
@@ -266,8 +266,8 @@ def test_deleting_an_effect_file_removes_it_with_no_other_edit(tmp_path: Path) -
         else:
             raise AssertionError("warmup still known")
         print("ok")
-    """ % str(tmp_path))
-    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    """)
+    env = {**os.environ, "PYTHONPATH": str(tmp_path), "EFFECTS_COPY": str(tmp_path)}
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120,
                          cwd=tmp_path)  # not the repository: its labrunner/ would come first on sys.path
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

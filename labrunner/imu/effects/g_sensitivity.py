@@ -46,6 +46,10 @@ class GSensitivity(Effect):
                    ) -> dict[str, np.ndarray]:
         return same_for(GYRO_CHANNELS, np.asarray(ctx.rows.force_g, dtype=float))
 
+    @classmethod
+    def envelope(cls, ctx: FitContext) -> dict[str, np.ndarray]:
+        return cls.regressors(ctx, {}, None)
+
     def coefficients(self, ctx: FitContext, seed: int) -> dict[str, np.ndarray]:
         m = np.asarray(self.matrix_dps_per_g, dtype=float)
         return {c: m[i].copy() for i, c in enumerate(GYRO_CHANNELS)}

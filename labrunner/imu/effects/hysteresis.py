@@ -93,6 +93,11 @@ class Hysteresis(Effect):
         return per_channel(self.width)
 
     @classmethod
+    def envelope(cls, ctx: FitContext) -> dict[str, np.ndarray]:
+        return same_for(CHANNELS, np.column_stack([branch_state(ctx.rows.temp_c, travel, ctx.remounts, ctx.path_via_c)
+                                                   for travel in (0.5, 2.0, 8.0)]))
+
+    @classmethod
     def coverage_gaps(cls, facts: CampaignFacts) -> list[Gap]:
         gaps = []
         if facts.power_ons_within_an_orientation > 0 and facts.max_temperature_rate_c_per_min < RAMP_C_PER_MIN:

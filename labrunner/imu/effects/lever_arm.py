@@ -71,6 +71,10 @@ class LeverArm(Effect):
         cols = centripetal_columns(ctx.rows.rate_dps)
         return {c: np.ascontiguousarray(cols[:, i, :]) for i, c in enumerate(ACCEL_CHANNELS)}
 
+    @classmethod
+    def envelope(cls, ctx: FitContext) -> dict[str, np.ndarray]:
+        return cls.regressors(ctx, {}, None)
+
     def coefficients(self, ctx: FitContext, seed: int) -> dict[str, np.ndarray]:
         r = np.asarray(self.r_m, dtype=float)
         return {c: r.copy() for c in ACCEL_CHANNELS}

@@ -61,6 +61,10 @@ class ScaleNonlinearity(Effect):
         sq = u * u
         return {c: sq[:, i: i + 1] for i, c in enumerate(CHANNELS)}
 
+    @classmethod
+    def envelope(cls, ctx: FitContext) -> dict[str, np.ndarray]:
+        return cls.regressors(ctx, {}, None)
+
     def coefficients(self, ctx: FitContext, seed: int) -> dict[str, np.ndarray]:
         return per_channel(self.k2_per_dps)
 

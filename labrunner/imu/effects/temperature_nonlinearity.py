@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from labrunner.domain import CHANNELS
+from labrunner.domain import CHANNELS, T_REF_C
 
 from ..effect import (
     CampaignFacts,
@@ -86,6 +86,12 @@ class TemperatureNonlinearity(Effect):
     def regressors(cls, ctx: FitContext, theta: dict[str, float], element_tau: float | None
                    ) -> dict[str, np.ndarray]:
         return same_for(CHANNELS, _step(ctx.element_temp(element_tau), theta["center_c"], theta["width_c"]))
+
+    @classmethod
+    def envelope(cls, ctx: FitContext) -> dict[str, np.ndarray]:
+        # Any smooth departure from the cubic: the next four powers of the temperature.
+        scaled = (np.asarray(ctx.rows.temp_c, dtype=float) - T_REF_C) / 30.0
+        return same_for(CHANNELS, np.stack([scaled ** k for k in range(4, 8)], axis=1))
 
     def coefficients(self, ctx: FitContext, seed: int) -> dict[str, np.ndarray]:
         return per_channel(self.amplitude)

@@ -15,7 +15,7 @@ import numpy as np
 
 from labrunner.domain import CHANNELS
 
-from ..effect import RAMP_C_PER_MIN, CampaignFacts, Effect, Fit, FitContext, Gap, Nonlinear, Stream
+from ..effect import RAMP_C_PER_MIN, CampaignFacts, Effect, Fit, FitContext, Gap, Nonlinear, Stream, same_for
 from ..inputs import ImuInputs
 from ..recursions import first_order_lag
 
@@ -93,6 +93,12 @@ class ThermalLag(Effect):
 
     def coefficients(self, ctx: FitContext, seed: int) -> dict[str, np.ndarray]:
         return {c: np.zeros(0) for c in self.channels}
+
+    @classmethod
+    def envelope(cls, ctx: FitContext) -> dict[str, np.ndarray]:
+        temp = np.asarray(ctx.rows.temp_c, dtype=float)
+        lags = np.stack([ctx.element_temp(tau) - temp for tau in (60.0, 300.0, 1200.0)], axis=1)
+        return same_for(CHANNELS, lags)
 
     @classmethod
     def coverage_gaps(cls, facts: CampaignFacts) -> list[Gap]:

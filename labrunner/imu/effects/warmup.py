@@ -68,6 +68,12 @@ class Warmup(Effect):
                    ) -> dict[str, np.ndarray]:
         return same_for(CHANNELS, _decay(ctx.rows.t_on_s, theta["tau_s"]))
 
+    @classmethod
+    def envelope(cls, ctx: FitContext) -> dict[str, np.ndarray]:
+        taus = np.array([100.0, 400.0, 1600.0])
+        return same_for(CHANNELS, np.exp(-np.maximum(np.asarray(ctx.rows.t_on_s, dtype=float), 0.0)[:, None]
+                                         / taus[None, :]))
+
     def coefficients(self, ctx: FitContext, seed: int) -> dict[str, np.ndarray]:
         return per_channel(self.amplitude)
 
