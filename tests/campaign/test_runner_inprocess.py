@@ -114,6 +114,11 @@ def test_a_campaign_runs_to_done_with_every_step_recorded_once(campaign):
     tr = transitions(campaign)
     assert tr[0] == "idle -> preflight" and tr[-2:] == ["recording -> fitting", "fitting -> done"]
     assert tr.count("rate_settling -> recording") == N_STEPS and "recording -> mounting" in tr
+    # Each soak lasted its stable window (120 s) after the chamber reached the setpoint.
+    ev = campaign.events()
+    soak_start = ev[ev.message == "ramping -> soaking"].t_s.to_numpy()
+    soaked = ev[ev.message.str.startswith("soaked at ")].t_s.to_numpy()
+    assert len(soaked) == 4 and np.all(soaked - soak_start >= 120.0)
     # The instruments did what the procedure says: two remounts at the remount temperature, the
     # serpentine temperatures, each step's rate, and the lab parked at the end.
     assert [o for _, o, _ in lab.operator.remounts] == ["x_up", "z_down"]
