@@ -103,11 +103,9 @@ def test_forward_error_equals_regressors_times_coefficients(name: str, trial: in
     assert np.max(np.abs(forward - expected)) < 1e-9
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", [n for n in NAMES if not REGISTRY[n].moves_baseline_temperature])
 def test_block_regressors_and_predictions_agree_with_the_row_regressors(name: str) -> None:
     cls = REGISTRY[name]
-    if cls.moves_baseline_temperature:
-        pytest.skip("no columns of its own (the baseline carries it: checked above)")
     rng = np.random.default_rng(_seed("blocks", name))
     eff = cls.random(rng)
     inputs = random_inputs(rng)
@@ -245,14 +243,21 @@ def test_an_effect_taken_out_of_the_registry_is_gone_everywhere(monkeypatch, nam
     assert f"`{name}`" not in cause_table()
 
 
-def test_deleting_an_effect_file_removes_it_with_no_other_edit(tmp_path: Path) -> None:
-    """The real thing: a copy of the package without warmup.py, in a fresh interpreter."""
+def _in_a_copy(tmp_path: Path, edit, script: str) -> None:
+    """Run `script` in a fresh interpreter against a copy of the package changed by `edit(copy)`."""
     copy = tmp_path / "labrunner"
     shutil.copytree(ROOT / "labrunner", copy, ignore=shutil.ignore_patterns("__pycache__"))
-    (copy / "imu/effects/warmup.py").unlink()
-    script = textwrap.dedent("""
-        import os, labrunner
-        assert labrunner.__file__.startswith(os.environ["EFFECTS_COPY"]), labrunner.__file__
+    edit(copy)
+    script = "import os, labrunner\nassert labrunner.__file__.startswith(os.environ['EFFECTS_COPY'])\n" + script
+    env = {**os.environ, "PYTHONPATH": str(tmp_path), "EFFECTS_COPY": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path)  # not the repository: its labrunner/ would come first on sys.path
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_deleting_an_effect_file_removes_it_with_no_other_edit(tmp_path: Path) -> None:
+    """The real thing: a copy of the package without warmup.py."""
+    _in_a_copy(tmp_path, lambda copy: (copy / "imu/effects/warmup.py").unlink(), textwrap.dedent("""
         from labrunner.imu.model import EFFECT_TYPES, default_imu_model
         from labrunner.imu.cause_table import cause_table
         from labrunner.discrepancy.terms import cause_order
@@ -266,9 +271,59 @@ def test_deleting_an_effect_file_removes_it_with_no_other_edit(tmp_path: Path) -
         else:
             raise AssertionError("warmup still known")
         print("ok")
-    """)
-    env = {**os.environ, "PYTHONPATH": str(tmp_path), "EFFECTS_COPY": str(tmp_path)}
-    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120,
-                         cwd=tmp_path)  # not the repository: its labrunner/ would come first on sys.path
-    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+    """))
 
+
+NEW_EFFECT = '''
+from dataclasses import dataclass, field
+import numpy as np
+from labrunner.domain import CHANNELS
+from ..effect import Effect, channel_map, channel_vector, per_channel, same_for, scalars
+
+
+@dataclass
+class RateOffset(Effect):
+    name = "rate_offset"
+    order = 85
+    what = "an offset proportional to the table rate's magnitude"
+    driver = "the table rate"
+    json_parameters = "`k`: {channel: offset per deg/s}"
+    k: dict = field(default_factory=dict)
+
+    def validate(self):
+        self.k = channel_map(self.k)
+
+    def forward(self, stream):
+        speed = np.linalg.norm(np.asarray(stream.inputs.rate_dps, float), axis=1)
+        return speed[:, None] * channel_vector(self.k)[None, :], None
+
+    @classmethod
+    def regressors(cls, ctx, theta, element_tau):
+        return same_for(CHANNELS, np.linalg.norm(np.asarray(ctx.rows.rate_dps, float), axis=1))
+
+    def coefficients(self, ctx, seed):
+        return per_channel(self.k)
+
+    @classmethod
+    def summarize(cls, fit, ctx):
+        return {"k": scalars(fit)}, {"k": scalars(fit)}
+'''
+
+
+def test_adding_a_cause_is_one_file(tmp_path: Path) -> None:
+    _in_a_copy(tmp_path, lambda copy: (copy / "imu/effects/rate_offset.py").write_text(NEW_EFFECT), textwrap.dedent("""
+        import numpy as np
+        from labrunner.imu.model import EFFECT_TYPES, ImuInputs, default_imu_model
+        from labrunner.imu.cause_table import cause_table
+        from labrunner.discrepancy.terms import cause_order
+        assert list(EFFECT_TYPES)[-2:] == ["rate_offset", "bias_random_walk"]
+        assert "rate_offset" in cause_order() and "| `rate_offset` |" in cause_table()
+        n = 5
+        inputs = ImuInputs(t_s=np.arange(n, dtype=float), run=np.ones(n, int), t_on_s=np.arange(n, dtype=float),
+                           temp_c=np.full(n, 25.0), force_g=np.tile([0, 0, 1.0], (n, 1)),
+                           rate_dps=np.tile([0, 0, 40.0], (n, 1)))
+        base = default_imu_model()
+        extra = base.with_effects(rate_offset={"k": {"gyro_z": 1e-3}}).deterministic_error(inputs)[0]
+        assert np.allclose(extra - base.deterministic_error(inputs)[0], [[0, 0, 0, 0, 0, 0.04]] * n)
+        print("ok")
+    """))
