@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerType
+from pymodbus.pdu import ModbusPDU
 
 from .chamber_profiles import ChamberProfile, profile_from
 from .errors import InstrumentError, InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
@@ -79,6 +80,7 @@ class ModbusChamber:
     def _make_client(self) -> ModbusTcpClient | ModbusSerialClient:
         if self.addr.transport == "tcp":
             return ModbusTcpClient(self.addr.host, port=self.addr.port, timeout=self.timeout_s, retries=0)
+        assert self.addr.serial_port, "an RTU address has a serial port (checked in __init__)"
         return ModbusSerialClient(self.addr.serial_port, framer=FramerType.RTU, baudrate=self.addr.baudrate,
                                   timeout=self.timeout_s, retries=0)
 
@@ -116,8 +118,9 @@ class ModbusChamber:
 
     # --- register access ----------------------------------------------------------------
 
-    def _transact(self, register: int, op: str, fn: Callable[[ModbusTcpClient | ModbusSerialClient], object]) -> object:
-        def attempt() -> object:
+    def _transact(self, register: int, op: str,
+                  fn: Callable[[ModbusTcpClient | ModbusSerialClient], ModbusPDU]) -> ModbusPDU:
+        def attempt() -> ModbusPDU:
             client = self._ensure_connected()
             try:
                 response = fn(client)
@@ -130,9 +133,10 @@ class ModbusChamber:
             except OSError as exc:
                 client.close()
                 log.debug("%s: %s at register %d: link error (%s); connection closed", self.name, op, register, exc)
-                raise InstrumentTimeout(self.name, self.address, f"{op}: link error ({exc})", register=register) from None
+                raise InstrumentTimeout(self.name, self.address, f"{op}: link error ({exc})",
+                                        register=register) from None
             if response.isError():
-                code = getattr(response, "exception_code", None)
+                code = int(getattr(response, "exception_code", 0))
                 text = MODBUS_EXCEPTIONS.get(code, f"code {code}")
                 log.debug("%s: %s at register %d: Modbus exception %s (%s)", self.name, op, register, code, text)
                 if code in TRANSIENT_EXCEPTIONS:
@@ -178,7 +182,8 @@ class ModbusChamber:
             if self.profile.model_code is not None and code != self.profile.model_code:
                 raise InstrumentProtocolError(
                     self.name, self.address, f"model register reads {code}, profile {self.profile.name!r} expects "
-                    f"{self.profile.model_code}: wrong controller or wrong profile", register=self.profile.model_register)
+                    f"{self.profile.model_code}: wrong controller or wrong profile",
+                    register=self.profile.model_register)
         return Identity(vendor=self.profile.vendor, model=self.profile.model, extra=extra)
 
     def setpoint_range(self) -> tuple[float, float]:

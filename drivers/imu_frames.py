@@ -130,9 +130,9 @@ class FrameDecoder:
         # Keep what may be the start of a frame not yet complete.
         end_used = int(accepted[-1]) + FRAME_SIZE if accepted.size else 0
         keep_from = max(end_used, n - (FRAME_SIZE - 1))
-        pending = starts[(starts >= end_used) & (starts + FRAME_SIZE > n)]
-        if pending.size:
-            keep_from = min(keep_from, int(pending[0]))
+        partial = starts[(starts >= end_used) & (starts + FRAME_SIZE > n)]
+        if partial.size:
+            keep_from = min(keep_from, int(partial[0]))
         keep_from = max(keep_from, end_used)
         self._tail = buf[keep_from:].copy()
 

@@ -104,7 +104,8 @@ class SerialRateTable:
             try:
                 line = raw[:-2].decode("ascii").strip()
             except UnicodeDecodeError:
-                raise InstrumentProtocolError(self.name, self.address, f"garbage reply {raw!r}", command=command) from None
+                raise InstrumentProtocolError(self.name, self.address, f"garbage reply {raw!r}",
+                                              command=command) from None
             if not line.isprintable():
                 raise InstrumentProtocolError(self.name, self.address, f"garbage reply {raw!r}", command=command)
             m = _ERR.match(line)

@@ -122,8 +122,8 @@ class VirtualClock:
             barriers = list(self._barriers)
         for fn in listeners:
             fn(now)
-        for fn in barriers:
-            fn()
+        for barrier in barriers:
+            barrier()
 
     def sleep(self, seconds: float) -> None:
         if seconds < 0:

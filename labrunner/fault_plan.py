@@ -55,6 +55,16 @@ class Fault:
             raise ValueError(f"fault {self.kind}: give at_s (campaign time) or at_step (a step index)")
 
 
+def _at_s(f: Fault) -> float:
+    assert f.at_s is not None, "a timed fault"
+    return f.at_s
+
+
+def _at_step(f: Fault) -> int:
+    assert f.at_step is not None, "a fault anchored to a step"
+    return f.at_step
+
+
 def random_fault_plan(procedure: Any, n: int, seed: int) -> list[dict[str, Any]]:
     """N faults of random kinds at random moments across the procedure's steps (seeded)."""
     rng = random.Random(f"faults-{seed}-{n}")
@@ -77,8 +87,8 @@ class FaultInjector:
                  log: Callable[[str, str, dict[str, Any]], None] | None = None,
                  progress: Callable[[], int | None] | None = None) -> None:
         self.sim = sim
-        self.timed = sorted((f for f in faults if f.at_s is not None), key=lambda f: f.at_s)  # type: ignore[arg-type]
-        self.by_step = sorted((f for f in faults if f.at_step is not None), key=lambda f: (f.at_step, f.after_s))
+        self.timed = sorted((f for f in faults if f.at_s is not None), key=_at_s)
+        self.by_step = sorted((f for f in faults if f.at_step is not None), key=lambda f: (_at_step(f), f.after_s))
         self.reached: dict[int, float] = {}  # step -> campaign time it was first seen in progress
         self.active: list[tuple[float, Fault]] = []  # (end campaign time, fault)
         self.t_zero = t_zero
@@ -121,14 +131,14 @@ class FaultInjector:
                 self._clear(fault)
                 _log.info("fault cleared at t=%.1f s: %s", t, fault.kind)
         due: list[Fault] = []
-        while self.timed and self.timed[0].at_s <= t:  # type: ignore[operator]
+        while self.timed and _at_s(self.timed[0]) <= t:
             due.append(self.timed.pop(0))
         k = self.progress() if self.progress else None
         if k is not None:
             self.reached.setdefault(k, t)
             for f in list(self.by_step):
-                start = self.reached.get(f.at_step)  # type: ignore[arg-type]
-                if (start is not None and t >= start + f.after_s) or k > f.at_step:  # type: ignore[operator]
+                start = self.reached.get(_at_step(f))
+                if (start is not None and t >= start + f.after_s) or k > _at_step(f):
                     self.by_step.remove(f)
                     due.append(f)
         for fault in due:

@@ -18,12 +18,12 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from labrunner.clock import Clock, ScaledClock, VirtualClock, WallClock
 from labrunner.drivers.chamber_modbus import ModbusAddress, ModbusChamber
 from labrunner.drivers.chamber_profiles import profile_from
 from labrunner.drivers.imu_serial import SerialImu
 from labrunner.drivers.protocols import Chamber, Imu, Operator, RateTable
 from labrunner.drivers.rate_table import SerialRateTable
-from labrunner.clock import Clock, ScaledClock, VirtualClock, WallClock
 from labrunner.yaml_config import ConfigError, load_model, validate
 
 if TYPE_CHECKING:  # the sims are imported only when a dry run is built
@@ -129,7 +129,8 @@ class Lab:
 
 def build_drivers(config: LabConfig, clock: Clock, *, max_rate_dps: float,
                   on_retry: Callable[[int, Exception], None] | None = None,
-                  on_event: Callable[[str, str], None] | None = None) -> tuple[ModbusChamber, SerialRateTable, SerialImu]:
+                  on_event: Callable[[str, str], None] | None = None,
+                  ) -> tuple[ModbusChamber, SerialRateTable, SerialImu]:
     """Drivers for a lab configuration; waits and backoffs go through `clock`."""
     c = config.chamber
     chamber = ModbusChamber(

@@ -24,8 +24,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from labrunner.yaml_config import ConfigError, load_yaml, read_text, validate
 from labrunner.domain import ORIENTATIONS
+from labrunner.yaml_config import ConfigError, load_yaml, read_text, validate
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +237,7 @@ class Procedure:
 
     def orientations(self) -> list[tuple[str, str]]:
         """(name, operator prompt) in procedure order."""
-        out = []
+        out: list[tuple[str, str]] = []
         for o in self.model.orientations:
             out.append((o.name, o.prompt or DEFAULT_PROMPTS[o.name]))
         return out

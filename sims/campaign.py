@@ -18,6 +18,7 @@ import pandas as pd
 
 from labrunner.drivers.imu_frames import ACCEL_LSB_G, GYRO_LSB_DPS, TEMP_LSB_C
 from labrunner.imu.model import ORIENTATIONS, ModelState
+
 from .world import SimLabConfig, SimWorld
 
 CSV_COLUMNS = (

@@ -13,14 +13,15 @@ from __future__ import annotations
 import asyncio
 import logging
 from dataclasses import dataclass
+from typing import cast
 
 from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from labrunner.drivers.chamber_profiles import ChamberProfile, profile_from
 from labrunner.clock import Clock
+from labrunner.drivers.chamber_profiles import ChamberProfile, profile_from
 
 from .aio import LoopThread
 from .world import SimWorld
@@ -69,7 +70,8 @@ class ChamberServer:
                            action=self._action)
         self._device = device
         self._server = self._loop.run(self._start(device, port))
-        self.port = self._server.transport.sockets[0].getsockname()[1]
+        # pymodbus keeps the listening asyncio.Server as the protocol's `transport` (typed BaseTransport).
+        self.port = int(cast(asyncio.Server, self._server.transport).sockets[0].getsockname()[1])
         log.info("chamber sim: Modbus %s server on %s:%d, profile %s", transport.upper(), host, self.port,
                  self.profile.name)
 
@@ -105,7 +107,7 @@ class ChamberServer:
         plant = self.world.chamber
         with self.world.lock:
             self.world.advance(self.clock.now())
-            pv = plant.air_c
+            pv: float | None = plant.air_c
             if self.faults.garbage_pv:
                 # A broken thermocouple: the F4 shows a huge value; float maps get NaN.
                 if p.encoding == "int16_tenths":
@@ -178,12 +180,13 @@ class ChamberServer:
     def refuse_connections(self, refuse: bool) -> None:
         """Fault: stop listening (connects are refused) and drop clients; or listen again."""
         log.debug("chamber sim: %s connections", "refusing" if refuse else "accepting")
+
         async def toggle() -> None:
             if refuse and self._server.transport is not None:
                 for c in list(self._server.active_connections.values()):
                     c.close()
                 self._server.transport.close()
-                self._server.transport = None
+                self._server.transport = None  # type: ignore[assignment]  # None: not listening
             elif not refuse and self._server.transport is None:
                 self._server = await self._start(self._device, self.port)
         self._loop.run(toggle())

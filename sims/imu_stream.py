@@ -16,10 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from labrunner.drivers.imu_frames import FRAME_SIZE, encode_frames
 from labrunner.clock import Clock
-
+from labrunner.drivers.imu_frames import FRAME_SIZE, encode_frames
 from labrunner.imu.model import ModelState
+
 from .links import SimPort
 from .world import SimWorld
 

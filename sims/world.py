@@ -15,8 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from .chamber_plant import ChamberParams, ChamberPlant
 from labrunner.imu.model import ImuInputs, ImuModel, default_imu_model, up_vector
+
+from .chamber_plant import ChamberParams, ChamberPlant
 from .table_plant import TableParams, TablePlant
 
 HISTORY_S = 6 * 3600.0  # how far back IMU temperatures can be asked for
