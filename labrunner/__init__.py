@@ -19,16 +19,40 @@ logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 if TYPE_CHECKING:
     from labrunner.api import (
-        AbortResult, Campaign, CampaignStatus, Database, Event, NextStep, Progress, RunResult, Session, abort,
-        diagnose, fit, load_data, open, resume, run, start_resume, start_run, status,
+        AbortResult,
+        Campaign,
+        CampaignStatus,
+        Database,
+        Event,
+        NextStep,
+        Progress,
+        RunResult,
+        Session,
+        abort,
+        diagnose,
+        fit,
+        load_data,
+        load_lab_config,
+        load_procedure,
+        load_sim_config,
+        open,
+        read_campaign_csv,
+        resume,
+        run,
+        serve_sim,
+        start_resume,
+        start_run,
+        status,
+        write_fit,
     )
 
-_API = (
+__all__ = [
     "AbortResult", "Campaign", "CampaignStatus", "Database", "Event", "NextStep", "Progress", "RunResult", "Session",
-    "abort", "diagnose", "fit", "load_data", "open", "resume", "run", "start_resume", "start_run", "status",
-)
-
-__all__ = ["UserError", "__version__", *_API]
+    "UserError", "__version__", "abort", "diagnose", "fit", "load_data", "load_lab_config", "load_procedure",
+    "load_sim_config", "open", "read_campaign_csv", "resume", "run", "serve_sim", "start_resume", "start_run",
+    "status", "write_fit",
+]
+_API = frozenset(__all__) - {"UserError", "__version__"}  # what __getattr__ loads from labrunner.api
 
 
 def __getattr__(name: str) -> Any:
@@ -40,4 +64,4 @@ def __getattr__(name: str) -> Any:
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_API))
+    return sorted(set(globals()) | _API)

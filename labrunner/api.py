@@ -23,7 +23,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from labrunner.campaign_session import (
-    AbortResult, Progress, ProgressCallback, RunResult, Session, abort_campaign, process_alive, start_resume,
+    AbortResult,
+    Progress,
+    ProgressCallback,
+    RunResult,
+    Session,
+    abort_campaign,
+    process_alive,
+    start_resume,
     start_run,
 )
 from labrunner.errors import UserError
@@ -36,14 +43,16 @@ if TYPE_CHECKING:
     from labrunner.discrepancy.diagnose import Diagnosis
     from labrunner.lab import LabConfig
     from labrunner.procedure import Procedure
+    from labrunner.sims.lab import SimLab
+    from labrunner.sims.world import SimLabConfig
     from labrunner.store import CampaignInfo, Store
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "AbortResult", "Campaign", "CampaignStatus", "Database", "Event", "NextStep", "Progress", "RunResult", "Session",
-    "UserError", "abort", "diagnose", "fit", "load_data", "open", "resume", "run", "start_resume", "start_run",
-    "status",
+    "UserError", "abort", "diagnose", "fit", "load_data", "load_lab_config", "load_procedure", "load_sim_config",
+    "open", "read_campaign_csv", "resume", "run", "serve_sim", "start_resume", "start_run", "status", "write_fit",
 ]
 
 
@@ -142,6 +151,13 @@ def status(db: str | Path, *, campaign: int | None = None, events: int = 8) -> C
 # --- analysis ------------------------------------------------------------------------------------------------
 
 
+def read_campaign_csv(path: str | Path) -> pd.DataFrame:
+    """A campaign CSV, validated (errors name the file, line and column)."""
+    from labrunner.campaign_csv import read_campaign
+
+    return read_campaign(path)
+
+
 def load_data(data: str | Path, *, campaign: int | None = None, include_monitor: bool = False) -> CampaignData:
     """Validated campaign rows (campaign CSV columns) with provenance, from a CSV or a store."""
     from labrunner.data_source import load_campaign_data
@@ -212,6 +228,51 @@ def diagnose(data: str | Path | CampaignData | pd.DataFrame, *, campaign: int | 
         frame = (data if isinstance(data, CampaignData) else load_data(data, campaign=campaign,
                                                                        include_monitor=True)).frame
     return run_diagnosis(frame, opts)
+
+
+# --- inputs and the simulated lab ---------------------------------------------------------------------------
+
+
+def load_procedure(path: str | Path) -> Procedure:
+    """A validated procedure (errors name the file, line and key)."""
+    from labrunner.procedure import load_procedure as load
+
+    return load(path)
+
+
+def load_lab_config(path: str | Path) -> LabConfig:
+    """A validated lab configuration (the instruments and their addresses)."""
+    from labrunner.lab import load_lab_config as load
+
+    return load(path)[0]
+
+
+def load_sim_config(source: str | Path | dict[str, Any] | None) -> SimLabConfig:
+    """A validated sim configuration (seed, plants, IMU model, faults) from a path or a mapping."""
+    from labrunner.sim_config import load_sim_config as load
+
+    return load(source)
+
+
+def serve_sim(*, config: str | Path | dict[str, Any] | None = None, speed: float = 1.0, host: str = "127.0.0.1",
+              link: str = "tcp", chamber_transport: str = "tcp", profile: str = "watlow_f4",
+              ports: tuple[int, int, int] = (0, 0, 0)) -> SimLab:
+    """The simulated chamber, rate table and IMU as servers (`labrunner sim serve`), on a clock
+    `speed` times faster than wall time; `ports` (chamber, table, IMU), 0 for any free port.
+    Close the returned `SimLab` to stop them; `.lab_config()` is a lab configuration pointing at them."""
+    from labrunner.clock import ScaledClock
+    from labrunner.sims.lab import SimLab, SimPorts
+
+    if speed <= 0:
+        raise UserError("--speed must be > 0")
+    sim_config = load_sim_config(config)
+    try:
+        lab = SimLab(sim_config, ScaledClock(speed), host=host, link=link, chamber_transport=chamber_transport,
+                     chamber_profile=profile, ports=SimPorts(chamber=ports[0], table=ports[1], imu=ports[2]))
+    except OSError as exc:
+        raise UserError(f"cannot start the simulated lab: {exc}") from None
+    log.info("simulated lab serving on %s at %gx", host, speed)
+    return lab
 
 
 # --- reading a store -----------------------------------------------------------------------------------------

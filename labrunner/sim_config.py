@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from labrunner.yaml_config import ConfigError, load_yaml, read_text
+
+if TYPE_CHECKING:
+    from labrunner.sims.world import SimLabConfig
 
 log = logging.getLogger(__name__)
 
@@ -20,8 +23,9 @@ def sim_config_dict(source: str | Path | dict[str, Any] | None) -> dict[str, Any
     """Read (a path) or take (a mapping) a sim configuration and validate it; returns its mapping."""
     if source is None:
         return {}
+    positions: dict[tuple[Any, ...], int] = {}
     if isinstance(source, dict):
-        data, positions, name = dict(source), {}, "sim configuration"
+        data, name = dict(source), "sim configuration"
     else:
         data, positions = load_yaml(read_text(source), str(source))
         name = str(source)
@@ -59,7 +63,7 @@ def _validate(data: dict[str, Any]) -> None:
                 raise ValueError(f"faults.{key}[{i}]: {exc}") from None
 
 
-def load_sim_config(source: str | Path | dict[str, Any] | None) -> Any:
+def load_sim_config(source: str | Path | dict[str, Any] | None) -> SimLabConfig:
     """The validated `SimLabConfig` of a sim configuration (path or mapping)."""
     from labrunner.sims.world import SimLabConfig
 

@@ -42,6 +42,8 @@ from labrunner.errors import UserError
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
+# Columns `samples_frame(with_steps=True)` adds to the campaign CSV columns.
+STEP_COLUMNS = ("kind", "state", "step_idx", "setpoint_c", "rate_cmd_dps")
 metadata = MetaData()
 
 campaigns = Table(
@@ -476,15 +478,24 @@ class Store:
                     lsb=lsb,
                 )
 
-    def samples_frame(self, campaign_id: int, include_monitor: bool = False) -> pd.DataFrame:
-        """All samples in the campaign CSV columns (records; with monitor rows if asked), time-ordered."""
+    def samples_frame(self, campaign_id: int, include_monitor: bool = False, with_steps: bool = False,
+                      remount_c: float | None = None) -> pd.DataFrame:
+        """All samples in the campaign CSV columns (records; with monitor rows if asked), time-ordered.
+
+        `with_steps` adds, per row, `kind` (record or monitor), the sequencer's `state`, the
+        `step_idx` of its step, the chamber `setpoint_c` and the commanded table rate `rate_cmd_dps`
+        (see `_with_steps`; `remount_c` is the procedure's remount temperature)."""
         kinds = ("record", "monitor") if include_monitor else ("record",)
-        parts: dict[str, list[np.ndarray]] = {c: [] for c in COLUMNS}
+        parts: dict[str, list[np.ndarray]] = {c: [] for c in (*COLUMNS, *(STEP_COLUMNS if with_steps else ()))}
         for b in self.blocks(campaign_id, kinds):
             n = len(b)
             if n == 0:
                 continue
             t = b.times()
+            if with_steps:
+                parts["kind"].append(np.full(n, b.kind, dtype=object))
+                parts["step_idx"].append(np.full(n, np.nan if b.step_idx is None else b.step_idx, dtype=float))
+                parts["state"].append(np.full(n, None, dtype=object))
             parts["t_s"].append(t)
             parts["run"].append(np.full(n, b.run, dtype=np.int64))
             parts["orientation"].append(np.full(n, b.orientation, dtype=object))
@@ -496,11 +507,50 @@ class Store:
             for j, c in enumerate(("gx_dps", "gy_dps", "gz_dps")):
                 parts[c].append(b.gyro_dps[:, j].astype(float))
         if not parts["t_s"]:
-            return pd.DataFrame({c: pd.Series(dtype=float) for c in COLUMNS})
-        frame = pd.DataFrame({c: np.concatenate(v) for c, v in parts.items()})
+            frame = pd.DataFrame({c: pd.Series(dtype=float) for c in parts})
+        else:
+            frame = pd.DataFrame({c: np.concatenate(v) for c, v in parts.items() if v})
         if include_monitor:
             frame = frame.sort_values("t_s", kind="stable").reset_index(drop=True)
-        return frame
+        return self._with_steps(campaign_id, frame, remount_c) if with_steps else frame
+
+    def _with_steps(self, campaign_id: int, frame: pd.DataFrame, remount_c: float | None) -> pd.DataFrame:
+        """Fill `state`, `step_idx`, `setpoint_c` and `rate_cmd_dps` of time-ordered rows.
+
+        A record row is its step's, recorded in state `recording` at the step's rate. A monitor row
+        (1 s means while the chamber moves) takes the sequencer's state and step from the last
+        transition before it: `mounting` (waiting for the remount temperature, the previous
+        orientation still mounted: setpoint `remount_c`), or `ramping`/`soaking` towards the step's
+        temperature; the table is stopped then (commanded rate 0)."""
+        step = frame["step_idx"].to_numpy(dtype=float).copy()
+        monitor = np.isnan(step)
+        state = np.full(step.size, "recording", dtype=object)
+        state[monitor] = None
+        if monitor.any():
+            ev = self.events_frame(campaign_id)
+            ev = ev[ev.kind == "transition"].sort_values(["t_s", "id"], kind="stable")
+            t_ev = ev.t_s.to_numpy(dtype=float)
+            pos = np.searchsorted(t_ev, frame["t_s"].to_numpy(dtype=float)[monitor], side="right") - 1
+            found = pos >= 0
+            at = np.maximum(pos, 0)
+            ev_step = ev.step_idx.to_numpy(dtype=float)
+            ev_state = ev.state.to_numpy(dtype=object)
+            step[monitor] = np.where(found, ev_step[at] if t_ev.size else np.nan, np.nan)
+            state[monitor] = np.where(found, ev_state[at] if t_ev.size else None, None)
+        plan = self.steps_frame(campaign_id).set_index("idx")
+        known = ~np.isnan(step)
+        setpoint = np.full(step.size, np.nan)
+        rate = np.full(step.size, np.nan)
+        idx = step[known].astype(np.int64)
+        setpoint[known] = plan["temperature_c"].reindex(idx).to_numpy(dtype=float)
+        rate[known] = plan["rate_dps"].reindex(idx).to_numpy(dtype=float)
+        rate[monitor] = 0.0
+        setpoint[state == "mounting"] = np.nan if remount_c is None else remount_c
+        frame["state"] = state
+        frame["step_idx"] = pd.array(step, dtype="Float64").astype("Int64")  # NaN -> <NA>
+        frame["setpoint_c"] = setpoint
+        frame["rate_cmd_dps"] = rate
+        return frame[[*COLUMNS, *STEP_COLUMNS]]
 
     def campaign_data(self, campaign_id: int | None = None, include_monitor: bool = False) -> Any:
         """Samples as validated campaign data with provenance (what `labrunner fit`/`diagnose` read)."""

@@ -113,7 +113,8 @@ def test_monitor_rows_carry_the_state_and_setpoint_of_their_time(tiny_db: Path) 
     moving = monitor[monitor.state != "mounting"]
     assert set(moving.setpoint_c) == {15.0, 35.0}
     # a soaked chamber sits at the setpoint the row names
-    assert (moving[moving.state == "soaking"].chamber_c - moving[moving.state == "soaking"].setpoint_c).abs().max() < 1.0
+    soaking = moving[moving.state == "soaking"]
+    assert (soaking.chamber_c - soaking.setpoint_c).abs().max() < 1.0
 
 
 def test_events_include_every_transition(tiny_db: Path) -> None:

@@ -14,6 +14,7 @@ from labrunner.errors import UserError
 
 from .evaluation import SPLITS
 from .fit import FitOptions
+from .outputs import write_outputs
 from .rbf_model import VARIANTS
 from .report import summary_markdown
 
@@ -82,6 +83,6 @@ def run(args: argparse.Namespace) -> int:
             Path(args.json).write_text(payload)
             progress(f"wrote {args.json}")
     if args.out:
-        written = api.write_fit(result, args.out, text)
+        written = write_outputs(result, Path(args.out), text)
         progress(f"wrote {', '.join(written)} in {args.out}")
     return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from labrunner import api
 from labrunner.errors import UserError
 
 
@@ -23,9 +24,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     if not (args.procedure or args.lab or args.sim_config or args.csv):
         raise UserError("nothing to check: give a procedure, --lab, --sim-config or --csv")
     if args.procedure:
-        from labrunner.procedure import load_procedure
-
-        p = load_procedure(args.procedure)
+        p = api.load_procedure(args.procedure)
         steps = p.steps()
         temps = p.model.temperatures.values()
         rates = p.model.rates.values()
@@ -33,26 +32,21 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"  {len(p.orientations())} orientation(s), {len(temps)} temperature(s) {temps[0]:g}..{temps[-1]:g} C "
               f"({p.model.temperatures.order}), {len(rates)} rate step(s) {min(rates):g}..{max(rates):g} deg/s")
         print(f"  {len(steps)} record steps of {p.model.record_s:g} s at {p.model.sample_rate_hz:g} Hz: "
-              f"{len(steps) * p.frames_per_record:,} samples; about {p.estimated_duration_s() / 3600:.1f} h of lab time")
+              f"{len(steps) * p.frames_per_record:,} samples; about {p.estimated_duration_s() / 3600:.1f} h of lab "
+              "time")
     if args.lab:
-        from labrunner.lab import load_lab_config
-
-        cfg, _ = load_lab_config(args.lab)
+        cfg = api.load_lab_config(args.lab)
         c = cfg.chamber
         where = f"{c.host}:{c.port}" if c.transport == "tcp" else str(c.serial_port)
         print(f"{args.lab}: lab configuration '{cfg.name}' is valid: chamber Modbus {c.transport.upper()} {where} "
               f"({c.profile if isinstance(c.profile, str) else 'custom profile'}), table {cfg.table.port}, "
               f"IMU {cfg.imu.port} at {cfg.imu.rate_hz:g} Hz")
     if args.sim_config:
-        from labrunner.sim_config import load_sim_config
-
-        sim = load_sim_config(args.sim_config)
+        sim = api.load_sim_config(args.sim_config)
         print(f"{args.sim_config}: sim configuration is valid (seed {sim.seed}, "
               f"IMU effects: {', '.join(sim.imu_model.effects) or 'none'})")
     if args.csv:
-        from labrunner.campaign_csv import read_campaign
-
-        f = read_campaign(args.csv)
+        f = api.read_campaign_csv(args.csv)
         print(f"{args.csv}: campaign CSV is valid: {len(f):,} rows, {f.run.nunique()} run(s), orientations "
               f"{', '.join(sorted(f.orientation.astype(str).unique()))}, IMU temperature "
               f"{f.imu_temp_c.min():.1f}..{f.imu_temp_c.max():.1f} C, table {f.table_rate_dps.min():g}.."

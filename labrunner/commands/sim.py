@@ -10,9 +10,7 @@ import threading
 import time
 from pathlib import Path
 
-from labrunner.clock import ScaledClock
-from labrunner.errors import UserError
-from labrunner.sim_config import load_sim_config
+from labrunner import api
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument("--profile", default="watlow_f4", help="chamber register-map profile")
     serve.add_argument("--link", choices=("tcp", "pty"), default="tcp",
                        help="serial lines as socket:// ports or as pseudo-terminals")
-    serve.add_argument("--config", type=Path, help="sim configuration (YAML): seed, plant parameters, IMU model, faults")
+    serve.add_argument("--config", type=Path,
+                       help="sim configuration (YAML): seed, plant parameters, IMU model, faults")
     serve.add_argument("--lab-config", type=Path, help="also write a lab configuration (YAML) pointing at these sims")
     serve.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
     serve.set_defaults(func=serve_command)
@@ -42,18 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def serve_command(args: argparse.Namespace) -> int:
     import yaml
 
-    from labrunner.sims.lab import SimLab, SimPorts
-
-    if args.speed <= 0:
-        raise UserError("--speed must be > 0")
-    config = load_sim_config(args.config)
-    clock = ScaledClock(args.speed)
-    try:
-        lab = SimLab(config, clock, host=args.host, link=args.link, chamber_transport=args.chamber_transport,
-                     chamber_profile=args.profile,
-                     ports=SimPorts(chamber=args.chamber_port, table=args.table_port, imu=args.imu_port))
-    except OSError as exc:
-        raise UserError(f"cannot start the simulated lab: {exc}") from None
+    lab = api.serve_sim(config=args.config, speed=args.speed, host=args.host, link=args.link,
+                        chamber_transport=args.chamber_transport, profile=args.profile,
+                        ports=(args.chamber_port, args.table_port, args.imu_port))
     lab_config = lab.lab_config()
     lab_config["clock"] = {"speed": args.speed}
     if args.lab_config:
