@@ -10,7 +10,6 @@ command line both go through here, so a campaign is composed in one place.
 from __future__ import annotations
 
 import logging
-import os
 import signal
 import sys
 import threading
@@ -21,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from labrunner.database import process_alive
 from labrunner.errors import UserError
 from labrunner.sim_config import has_fault_plan, sim_config_dict
 
@@ -297,19 +297,6 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
         raise
     log.info("campaign %d '%s' in %s: %d steps (%s)", cid, proc.name, db, len(runner.plan), "sim" if sim else "lab")
     return Session(store, cid, proc, mode="sim" if sim else "lab", db=db, lab=the_lab, runner=runner)
-
-
-def process_alive(pid: int | None, host: str | None) -> bool:
-    """Whether the process that last ran a campaign is still alive (on this host)."""
-    if not pid or host != os.uname().nodename:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path | LabConfig | None = None,

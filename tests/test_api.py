@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -56,6 +58,7 @@ def test_docs_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caps
     assert (paused.state, paused.exit_code, paused.steps_done) == ("paused", 3, 5)
     assert (finished.state, finished.steps_recorded) == ("done", N_STEPS - 5)
     assert "paused 3 5" in out and "2 fits stored" in out and "already" in out
+    assert len(ns["procedure"].steps()) == N_STEPS and "True True" in out  # the served sims' ports
 
 
 @pytest.fixture(scope="module")
@@ -185,6 +188,22 @@ def test_abort_with_no_process_then_resume(tmp_path: Path) -> None:
     with labrunner.open(db) as database:
         ops = database.campaign().events().query("kind == 'operator'").message.tolist()
     assert "test" in ops and "aborted by labrunner abort (no process running)" in ops
+
+
+def test_ctrl_c_pauses_a_run_with_handle_signals_and_handlers_are_restored(tmp_path: Path) -> None:
+    proc = tmp_path / "tiny.yaml"
+    proc.write_text(TINY)
+    before = signal.getsignal(signal.SIGINT)
+
+    def ctrl_c_after_three(p: labrunner.Progress) -> None:
+        if p.steps_done == 3 and p.state == "rate_settling":
+            os.kill(os.getpid(), signal.SIGINT)
+
+    result = labrunner.run(proc, db=tmp_path / "t.db", progress=ctrl_c_after_three, handle_signals=True)
+    assert (result.state, result.exit_code) == ("paused", 3) and 3 <= result.steps_done < N_STEPS
+    assert signal.getsignal(signal.SIGINT) is before
+    with labrunner.open(tmp_path / "t.db") as db:
+        assert "Ctrl-C: pause" in db.campaign().events().message.tolist()
 
 
 def test_user_errors_name_what_is_wrong(tmp_path: Path) -> None:

@@ -36,6 +36,8 @@ ROOMS: dict[str, str] = {
     "labrunner.campaign_csv": "store",
     "labrunner.data_source": "store",
     "labrunner.campaign_fit": "orchestration",
+    "labrunner.campaign_analysis": "orchestration",
+    "labrunner.database": "orchestration",
     "labrunner.fault_plan": "orchestration",
     "labrunner.lab": "composition",
     "labrunner.api": "composition",

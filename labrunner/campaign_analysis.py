@@ -1,0 +1,102 @@
+"""The analyses of a campaign from Python: the fit and the diagnosis, as `labrunner fit` and `diagnose`.
+
+Data come from a store's campaign or a campaign CSV (`load_data`), validated, with provenance; a
+fit of a store's campaign is stored in it with that provenance.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from labrunner.errors import UserError
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from labrunner.calibration.fit import FitOptions, FitResult
+    from labrunner.data_source import CampaignData
+    from labrunner.discrepancy.diagnose import Diagnosis
+
+log = logging.getLogger(__name__)
+
+
+def read_campaign_csv(path: str | Path) -> pd.DataFrame:
+    """A campaign CSV, validated (errors name the file, line and column)."""
+    from labrunner.campaign_csv import read_campaign
+
+    return read_campaign(path)
+
+
+def load_data(data: str | Path, *, campaign: int | None = None, include_monitor: bool = False) -> CampaignData:
+    """Validated campaign rows (campaign CSV columns) with provenance, from a CSV or a store."""
+    from labrunner.data_source import load_campaign_data
+
+    return load_campaign_data(data, campaign, include_monitor=include_monitor)
+
+
+def fit(data: str | Path | CampaignData, *, campaign: int | None = None, options: FitOptions | None = None,
+        save: bool = True, out: str | Path | None = None, progress: Callable[[str], None] | None = None,
+        **overrides: Any) -> FitResult:
+    """Fit the calibration models to a campaign (a store's campaign, or a campaign CSV): what
+    `labrunner fit` computes. `options` (a `labrunner.calibration.FitOptions`) and `overrides`
+    (its fields: `poly_order`, `poly_method`, `rbf_variants`, `rbf_export`, `evaluate`, `splits`,
+    `seed`, ...) say what to fit. With a store and `save`, the fit is stored in it with its
+    provenance; with `out`, the model files are written there. `progress` gets messages."""
+    import dataclasses
+
+    from labrunner.calibration.fit import FitOptions, fit_campaign
+    from labrunner.data_source import CampaignData
+
+    try:
+        opts = dataclasses.replace(options or FitOptions(), **overrides)
+    except TypeError as exc:
+        raise UserError(f"fit options: {exc}") from None
+    loaded = data if isinstance(data, CampaignData) else load_data(data, campaign=campaign)
+    result = fit_campaign(loaded.frame, opts, provenance=loaded.provenance, progress=progress)
+    prov = loaded.provenance
+    if save and prov.get("kind") == "store":
+        from labrunner.store import Store
+
+        with Store.open_existing(prov["source"]) as store:
+            fit_id = store.save_fit(int(prov["campaign_id"]), result.to_dict(), result.provenance)
+        log.info("fit %d stored in %s (campaign %s)", fit_id, prov["source"], prov["campaign_id"])
+        if progress is not None:
+            where = prov["source"] if isinstance(data, CampaignData) else data
+            progress(f"fit {fit_id} stored in {where} (campaign {prov['campaign_id']})")
+    if out is not None:
+        write_fit(result, out)
+    return result
+
+
+def write_fit(result: FitResult, out: str | Path, summary: str | None = None) -> list[str]:
+    """Write a fit's model JSON files, C header, summary and evaluation tables into `out`; returns the names."""
+    from labrunner.calibration.outputs import write_outputs
+
+    return write_outputs(result, Path(out), summary)
+
+
+def diagnose(data: str | Path | CampaignData | pd.DataFrame, *, campaign: int | None = None,
+             **options: Any) -> Diagnosis:
+    """What the simulated IMU model gets wrong in measured data (a store's campaign with its monitor
+    rows, a campaign CSV, or a frame): what `labrunner diagnose` computes. `options` are
+    `labrunner.discrepancy.DiagnoseOptions` fields (`min_evidence`, `causes`, ...)."""
+    import pandas as pd
+
+    from labrunner.data_source import CampaignData
+    from labrunner.discrepancy.diagnose import DiagnoseOptions
+    from labrunner.discrepancy.diagnose import diagnose as run_diagnosis
+
+    try:
+        opts = DiagnoseOptions(**options)
+    except TypeError as exc:
+        raise UserError(f"diagnose options: {exc}") from None
+    if isinstance(data, pd.DataFrame):
+        frame = data
+    else:
+        # Ramps and soaks too: thermal lag and hysteresis show there.
+        frame = (data if isinstance(data, CampaignData) else load_data(data, campaign=campaign,
+                                                                       include_monitor=True)).frame
+    return run_diagnosis(frame, opts)

@@ -1,0 +1,234 @@
+"""A labrunner store read from Python: `Database` (campaigns) and `Campaign` (its plan, samples,
+events, fits, status), as frames and dataclasses; readable while another process runs a campaign.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from labrunner.campaign_analysis import diagnose, fit
+from labrunner.errors import UserError
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from labrunner.calibration.fit import FitOptions, FitResult
+    from labrunner.data_source import CampaignData
+    from labrunner.discrepancy.diagnose import Diagnosis
+    from labrunner.procedure import Procedure
+    from labrunner.store import CampaignInfo, Store
+
+log = logging.getLogger(__name__)
+
+
+def process_alive(pid: int | None, host: str | None) -> bool:
+    """Whether the process that last ran a campaign is still alive (on this host)."""
+    if not pid or host != os.uname().nodename:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@dataclass(frozen=True)
+class Event:
+    t_s: float  # campaign time
+    kind: str  # transition, record, fault, recovery, interlock, warning, operator, info
+    state: str | None
+    step_idx: int | None
+    message: str
+
+
+@dataclass(frozen=True)
+class NextStep:
+    idx: int
+    orientation: str
+    temperature_c: float
+    rate_dps: float
+
+
+@dataclass(frozen=True)
+class CampaignStatus:
+    """Progress of a campaign, readable while another process runs it (what `labrunner status` shows)."""
+
+    campaign_id: int
+    name: str
+    db: Path
+    status: str  # running, paused, aborted, failed, done
+    process_alive: bool  # a "running" campaign whose process is gone must be resumed
+    mode: str  # "sim" or "lab"
+    state: str  # the sequencer's last state
+    steps_done: int
+    steps_total: int
+    samples: int
+    lab_time_s: float
+    next_step: NextStep | None
+    eta_s: float | None  # lab time left
+    eta_estimated: bool  # from the procedure's estimate (nothing recorded yet), not the pace so far
+    updated_wall: float
+    faults: int
+    rerecorded_steps: int
+    recent_events: tuple[Event, ...]
+
+    @property
+    def fraction_done(self) -> float:
+        return self.steps_done / max(self.steps_total, 1)
+
+
+def open_database(db: str | Path) -> Database:
+    """Open a labrunner store for reading (a context manager; also usable while a campaign runs)."""
+    from labrunner.store import Store
+
+    return Database(Store.open_existing(db))
+
+
+class Database:
+    """A labrunner SQLite store: one or more campaigns."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+
+    @property
+    def path(self) -> Path:
+        return self.store.path
+
+    def campaigns(self) -> list[Campaign]:
+        return [Campaign(self, cid) for cid in self.store.campaign_ids()]
+
+    def campaign(self, id: int | None = None) -> Campaign:  # noqa: A002 - the campaign's id, as in the store
+        """The campaign `id`, or the latest one in the file."""
+        return Campaign(self, self.store.resolve(id))
+
+    def close(self) -> None:
+        self.store.close()
+
+    def __enter__(self) -> Database:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"<labrunner.Database {self.path} campaigns={self.store.campaign_ids()}>"
+
+
+class Campaign:
+    """One campaign of a store: what was planned, recorded and logged, and the analyses of it."""
+
+    def __init__(self, db: Database, campaign_id: int) -> None:
+        self.db = db
+        self.id = campaign_id
+
+    @property
+    def _store(self) -> Store:
+        return self.db.store
+
+    @property
+    def info(self) -> CampaignInfo:
+        """The campaign row (procedure text and hash, lab and sim configuration, status, ...), read now."""
+        return self._store.campaign(self.id)
+
+    @property
+    def name(self) -> str:
+        return self.info.name
+
+    @property
+    def status(self) -> str:
+        return self.info.status
+
+    def procedure(self) -> Procedure:
+        """The procedure the campaign was planned from (as stored with it)."""
+        from labrunner.procedure import parse_procedure
+
+        return parse_procedure(self.info.procedure_text, f"{self.db.path} (campaign {self.id} procedure)")
+
+    def steps(self) -> pd.DataFrame:
+        """The planned record steps: idx, orientation, temperature_c, rate_dps, status, attempts, n_samples, ..."""
+        return self._store.steps_frame(self.id)
+
+    def events(self) -> pd.DataFrame:
+        """Every event (transitions, records, faults, recoveries, operator actions) in order; `detail` decoded."""
+        frame = self._store.events_frame(self.id)
+        frame["detail"] = [json.loads(d) if isinstance(d, str) and d else None for d in frame["detail"]]
+        return frame
+
+    def samples(self, include_monitor: bool = False) -> pd.DataFrame:
+        """Samples in the campaign CSV columns, time-ordered, with per row `kind` (record/monitor), the
+        sequencer's `state`, the `step_idx` of its step, the chamber `setpoint_c` and the commanded
+        table rate `rate_cmd_dps`. Monitor rows (1 s means while the chamber moves to the remount
+        temperature or a step's, and soaks there) only with `include_monitor`."""
+        return self._store.samples_frame(self.id, include_monitor=include_monitor, with_steps=True,
+                                         remount_c=self.procedure().model.remount_c)
+
+    def data(self, include_monitor: bool = False) -> CampaignData:
+        """Validated samples (campaign CSV columns) with provenance: what `fit` and `diagnose` read."""
+        return self._store.campaign_data(self.id, include_monitor=include_monitor)
+
+    def fits(self) -> pd.DataFrame:
+        """Fits stored with the campaign (by `labrunner fit` or the end-of-run fit)."""
+        return self._store.fits_frame(self.id)
+
+    def fit(self, *, options: FitOptions | None = None, save: bool = True, out: str | Path | None = None,
+            progress: Callable[[str], None] | None = None, **overrides: Any) -> FitResult:
+        """Fit the calibration models to the recorded steps, stored with the campaign unless
+        `save=False` (see `labrunner.fit`)."""
+        return fit(self.data(), options=options, save=save, out=out, progress=progress, **overrides)
+
+    def diagnose(self, **options: Any) -> Diagnosis:
+        """Diagnose the simulated IMU model against this campaign, monitor rows included (see `labrunner.diagnose`)."""
+        return diagnose(self.data(include_monitor=True), **options)
+
+    def export_csv(self, path: Any, include_monitor: bool = False) -> int:
+        """Write the campaign CSV format (a path or a text stream); returns the number of rows."""
+        from labrunner.campaign_csv import write_campaign
+
+        frame = self._store.samples_frame(self.id, include_monitor=include_monitor)
+        if frame.empty:
+            raise UserError(f"{self.db.path}: campaign {self.id} has no recorded samples to export")
+        write_campaign(frame, path)
+        return len(frame)
+
+    def status_report(self, events: int = 8) -> CampaignStatus:
+        """Progress, state, ETA and recent events (see `labrunner.status`)."""
+        store = self._store
+        info = store.campaign(self.id)
+        stp = store.steps_frame(self.id)
+        recent = store.events_frame(self.id, last=events)
+        trans = store.events_frame(self.id)
+        done = int((stp.status == "done").sum())
+        total = len(stp)
+        is_transition = trans.kind == "transition"
+        state = str(trans[is_transition].state.iloc[-1]) if is_transition.any() else "idle"
+        lab_time = info.clock_last - info.clock_t0
+        pending = stp[stp.status != "done"]
+        nxt, eta, estimated = None, None, False
+        if not pending.empty:
+            row = pending.iloc[0]
+            nxt = NextStep(int(row.idx), str(row.orientation), float(row.temperature_c), float(row.rate_dps))
+            if done:
+                eta = lab_time / done * (total - done)  # at the pace so far
+            else:
+                eta, estimated = self.procedure().estimated_duration_s(), True
+        return CampaignStatus(
+            campaign_id=self.id, name=info.name, db=self.db.path, status=info.status,
+            process_alive=process_alive(info.pid, info.host), mode=info.mode, state=state, steps_done=done,
+            steps_total=total, samples=int(stp.n_samples.fillna(0).sum()), lab_time_s=lab_time, next_step=nxt,
+            eta_s=eta, eta_estimated=estimated, updated_wall=info.updated_wall,
+            faults=int(trans.kind.isin(["fault", "interlock"]).sum()), rerecorded_steps=int((stp.attempts > 1).sum()),
+            recent_events=tuple(Event(float(e.t_s), str(e.kind), None if e.state is None else str(e.state),
+                                      None if e.step_idx is None or e.step_idx != e.step_idx else int(e.step_idx),
+                                      str(e.message)) for e in recent.itertuples()))
+
+    def __repr__(self) -> str:
+        info = self.info
+        return f"<labrunner.Campaign {self.id} '{info.name}' {info.status} in {self.db.path}>"
