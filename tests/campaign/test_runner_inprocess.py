@@ -339,3 +339,17 @@ def test_a_chamber_too_slow_to_soak_meets_the_timeout_policy(tmp_path, policy, f
     assert kinds == (["warning", "warning"] if policy == "continue" else ["fault"])
     assert (c.steps().status == "done").sum() == (N_STEPS if policy == "continue" else 0)
     c.store.close()
+
+
+def test_a_failing_end_of_run_fit_leaves_the_campaign_done_with_its_data(tmp_path):
+    # Two orientations cannot give a six-position fit: the data stay, the fit can be run again later.
+    c = Campaign(tmp_path, PROC.replace("fit: {run: false}", "fit: {run: true, rbf: false}"))
+    runner = c.runner(FakeLab(), fit_out_dir=tmp_path / "fit")
+    assert runner.run() == "done"
+    ev = c.events()
+    warnings = list(ev[ev.kind == "warning"].message)
+    assert len(warnings) == 1 and warnings[0].startswith("fit failed: ")
+    assert runner.fit_summary.startswith("fit failed: ") and not runner.fit_ok
+    assert c.store.fits_frame(c.cid).empty and not (tmp_path / "fit").exists()
+    assert len(c.store.samples_frame(c.cid)) == N_STEPS * FRAMES
+    c.store.close()
