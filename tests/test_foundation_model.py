@@ -3,11 +3,17 @@
 import numpy as np
 import pytest
 
-from labrunner.sims.chamber_plant import ChamberParams, ChamberPlant
 from labrunner.imu.model import (
-    ImuInputs, ImuModel, ModelState, baseline_design, default_imu_model, orientation_index, up_vector,
+    ImuInputs,
+    ImuModel,
+    ModelState,
+    baseline_design,
+    default_imu_model,
+    orientation_index,
+    up_vector,
 )
 from labrunner.imu.recursions import first_order_lag, ltv_first_order, play_state
+from labrunner.sims.chamber_plant import ChamberParams, ChamberPlant
 from labrunner.sims.table_plant import TablePlant
 
 
