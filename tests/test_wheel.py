@@ -100,12 +100,14 @@ def test_built_wheel_installs_alone_and_runs_the_quick_dry_run(tmp_path: Path) -
     made = _run([sys.executable, "-m", "venv", venv], timeout=120, env=env)
     assert made.returncode == 0, made.stderr[-3000:]
     py, cli = venv / "bin" / "python", venv / "bin" / "labrunner"
+    # Dependencies come from the package index: skip (with the reason) only if it cannot be reached at
+    # all, probed with one small dependency; any other install failure is a failure of the package.
+    probe = _run([py, "-m", "pip", "download", "--quiet", "--no-input", "--no-deps", "-d", tmp_path / "probe",
+                  "pyserial>=3.5,<4"], timeout=300, env=env)
+    if probe.returncode != 0:
+        reason = (probe.stderr.strip().splitlines() or ["no output"])[-1]
+        pytest.skip(f"the package index is unreachable, dependencies cannot be installed: {reason}")
     installed = _run([py, "-m", "pip", "install", "--quiet", "--no-input", wheel], timeout=600, env=env)
-    if installed.returncode != 0 and any(s in installed.stderr for s in (
-            "No matching distribution", "Could not find a version", "Failed to establish a new connection",
-            "Temporary failure in name resolution", "Network is unreachable")):
-        pytest.skip(f"the package index is unreachable, dependencies cannot be installed: "
-                    f"{installed.stderr.strip().splitlines()[-1]}")
     assert installed.returncode == 0, installed.stderr[-3000:]
 
     work = tmp_path / "elsewhere"  # not the checkout: only the installed package can be found
