@@ -9,7 +9,8 @@
         fit = campaign.fit()                                             # what `labrunner fit` computes
 
 The pieces live in small modules, gathered here (and re-exported by `labrunner`):
-`campaign_session` composes a lab, a store and the runner (run, resume, abort), `database` reads
+`campaign_session` composes a lab, a store and the runner (run, resume), `campaign_abort` ends a
+campaign from outside, `database` reads
 a store (`Database`, `Campaign`, `CampaignStatus`), `campaign_analysis` fits and diagnoses.
 
 Every function raises `labrunner.UserError` (with a message naming the file, line or campaign) for
@@ -24,17 +25,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from labrunner.campaign_abort import AbortResult, abort_campaign
 from labrunner.campaign_analysis import diagnose, fit, load_data, read_campaign_csv, write_fit
-from labrunner.campaign_session import (
-    AbortResult,
-    Progress,
-    ProgressCallback,
-    RunResult,
-    Session,
-    abort_campaign,
-    start_resume,
-    start_run,
-)
+from labrunner.campaign_session import Progress, ProgressCallback, RunResult, Session, start_resume, start_run
 from labrunner.database import Campaign, CampaignStatus, Database, Event, NextStep, open_database
 from labrunner.errors import UserError
 

@@ -42,6 +42,7 @@ ROOMS: dict[str, str] = {
     "labrunner.lab": "composition",
     "labrunner.api": "composition",
     "labrunner.campaign_session": "composition",
+    "labrunner.campaign_abort": "composition",
     "labrunner.sim_config": "composition",
     "labrunner.commands": "command",
     "labrunner.cli": "command",
