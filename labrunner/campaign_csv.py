@@ -1,4 +1,4 @@
-"""The campaign CSV format (DESIGN.md): one row per sample, validated on the way in.
+"""The campaign CSV format (docs/design.md, "The campaign CSV"): one row per sample, validated on the way in.
 
 `read_campaign` accepts a CSV path or a DataFrame and returns a frame with exactly
 COLUMNS, in the right dtypes, or raises `CampaignDataError` naming file, line and
@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from labrunner.errors import UserError
 from labrunner.domain import ACCEL_COLUMNS, GYRO_COLUMNS, ORIENTATIONS, OUTPUT_COLUMNS
 from labrunner.domain import CSV_COLUMNS as COLUMNS
+from labrunner.errors import UserError
 
 __all__ = ["COLUMNS", "ACCEL_COLUMNS", "GYRO_COLUMNS", "OUTPUT_COLUMNS", "read_campaign", "write_campaign"]
 # Columns that must hold a number on every row; chamber_c may be empty (no chamber).
@@ -42,7 +42,7 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
     """Load and validate campaign data; sorted as given (time order within each run is checked)."""
     from_csv = not isinstance(source, pd.DataFrame)
     label = name or (str(source) if from_csv else "data")
-    if from_csv:
+    if not isinstance(source, pd.DataFrame):
         path = Path(source)
         if not path.exists():
             raise CampaignDataError(label, "file not found")
@@ -86,14 +86,17 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
             raise CampaignDataError(label, "value is infinite", _line(i, from_csv), col)
         out[col] = arr
 
-    runs = pd.to_numeric(raw["run"].astype(str).str.strip(), errors="coerce") if (from_csv or raw["run"].dtype == object) \
-        else pd.to_numeric(raw["run"], errors="coerce")
+    if from_csv or raw["run"].dtype == object:
+        runs = pd.to_numeric(raw["run"].astype(str).str.strip(), errors="coerce")
+    else:
+        runs = pd.to_numeric(raw["run"], errors="coerce")
     r = runs.to_numpy(dtype=float)
     with np.errstate(invalid="ignore"):
         bad = ~np.isfinite(r) | (np.round(r) != r) | (np.abs(r) > 2**31)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise CampaignDataError(label, f"{raw['run'].iloc[i]!r} is not an integer run number", _line(i, from_csv), "run")
+        raise CampaignDataError(label, f"{raw['run'].iloc[i]!r} is not an integer run number", _line(i, from_csv),
+                                "run")
     out["run"] = r.astype(np.int64)
 
     orient = raw["orientation"].astype(str).str.strip()

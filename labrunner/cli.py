@@ -1,4 +1,5 @@
-"""`labrunner ...`: one sub-command per module, each registering its own parser."""
+"""labrunner runs thermal-calibration campaigns of MEMS IMUs (a thermal chamber and a rate table, or
+their simulation for a dry run), stores every sample, and fits and diagnoses the IMU's error models."""
 
 from __future__ import annotations
 
