@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -56,7 +57,8 @@ def logging_path_rate(store_path: Path, n_steps: int) -> tuple[float, int]:
             self.index, self.orientation, self.temperature_c, self.rate_dps = i, "z_up", 25.0, 10.0
 
     cid = store.new_campaign(name="bench", procedure_text="x", procedure_path=None, procedure_sha256="x",
-                             lab_config={}, mode="sim", sim_config=None, clock_t0=0.0, plan=[_S(i) for i in range(n_steps)])
+                             lab_config={}, mode="sim", sim_config=None, clock_t0=0.0,
+                             plan=[_S(i) for i in range(n_steps)])
     blocks = []
     for i in range(n_steps):
         n = 3000
@@ -115,9 +117,7 @@ def main() -> None:
     print(f"raw sqlite3.executemany of the same rows (tuples, committed per step): {raw_rate:,.0f} rows/s")
     print(f"  ratio logging/raw = {log_rate / raw_rate:.2f} (target >= 0.5)")
     if not args.keep and not args.db:
-        for f in tmp.iterdir():
-            f.unlink()
-        tmp.rmdir()
+        shutil.rmtree(tmp)  # the database, its WAL files and the <db>_fit/ folder of the end-of-run fit
     elif args.keep:
         print(f"  database kept: {db}")
 

@@ -24,8 +24,8 @@ sys.path.insert(0, str(ROOT))
 from labrunner.campaign_csv import write_campaign
 from labrunner.cli import main
 from labrunner.discrepancy import diagnose
-from labrunner.sims.campaign import CampaignPlan, synthesize
 from labrunner.imu.model import default_imu_model
+from labrunner.sims.campaign import CampaignPlan, synthesize
 from labrunner.sims.world import SimLabConfig
 
 

@@ -44,8 +44,8 @@ def main() -> int:
         frame = load_campaign_data(args.data).frame
         print(f"load: {time.perf_counter() - t0:.1f} s, {len(frame):,} rows")
     else:
-        from labrunner.sims.campaign import CampaignPlan, synthesize, triangular_rates
         from labrunner.imu.model import default_imu_model
+        from labrunner.sims.campaign import CampaignPlan, synthesize, triangular_rates
         from labrunner.sims.world import SimLabConfig
 
         model = default_imu_model()

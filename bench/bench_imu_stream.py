@@ -12,9 +12,9 @@ import time
 
 import numpy as np
 
+from labrunner.clock import VirtualClock
 from labrunner.drivers.imu_frames import FrameDecoder, encode_frames
 from labrunner.drivers.imu_serial import SerialImu
-from labrunner.clock import VirtualClock
 from labrunner.sims.imu_stream import ImuStreamSim
 from labrunner.sims.links import PtyPort, TcpSerialPort
 from labrunner.sims.world import SimLabConfig, SimWorld

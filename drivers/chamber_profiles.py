@@ -75,7 +75,8 @@ class ChamberProfile:
 
 
 PROFILES: dict[str, ChamberProfile] = {
-    # The default map (docs/design.md, "Instruments"): Watlow F4 style, signed tenths of a degree; register 0 reads the model number.
+    # The default map (docs/design.md, "Instruments"): Watlow F4 style, signed tenths of a degree;
+    # register 0 reads the model number.
     "watlow_f4": ChamberProfile(
         name="watlow_f4", encoding="int16_tenths", process_value=100, setpoint=300, setpoint_min=602,
         setpoint_max=603, heat_output=103, cool_output=107, model_register=0, model_code=5270,

@@ -29,15 +29,30 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from sqlalchemy import (
-    Column, Float, ForeignKey, Index, Integer, LargeBinary, MetaData, String, Table, Text, create_engine,
-    event, func, insert, select, text, update,
+    Column,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    MetaData,
+    String,
+    Table,
+    Text,
+    create_engine,
+    event,
+    func,
+    insert,
+    select,
+    text,
+    update,
 )
-from sqlalchemy.engine import Connection, Engine
+from sqlalchemy.engine import Connection, CursorResult, Engine
 from sqlalchemy.exc import DatabaseError, OperationalError
 
-from labrunner.version import __version__
 from labrunner.campaign_csv import COLUMNS
 from labrunner.errors import UserError
+from labrunner.version import __version__
 
 log = logging.getLogger(__name__)
 
@@ -217,6 +232,14 @@ class CampaignInfo:
     n_steps: int
 
 
+def _inserted_id(result: CursorResult[Any]) -> int:
+    """The primary key of a single-row insert (every table here has an integer autoincrement key)."""
+    key = result.inserted_primary_key
+    if key is None:  # pragma: no cover - SQLite reports the rowid of every single-row insert
+        raise RuntimeError("the insert reported no primary key")
+    return int(key[0])
+
+
 def _on_connect(dbapi_conn: Any, _record: Any) -> None:
     cur = dbapi_conn.cursor()
     cur.execute("PRAGMA journal_mode=WAL")
@@ -294,13 +317,13 @@ class Store:
                      plan: Sequence[Any]) -> int:
         now = time.time()
         with self.transaction() as conn:
-            cid = conn.execute(insert(campaigns).values(
+            cid = _inserted_id(conn.execute(insert(campaigns).values(
                 name=name, procedure_path=procedure_path, procedure_text=procedure_text,
                 procedure_sha256=procedure_sha256, lab_config=json.dumps(lab_config), mode=mode,
                 sim_config=json.dumps(sim_config) if sim_config is not None else None,
                 software_version=__version__, status="running", created_wall=now, updated_wall=now,
                 clock_t0=clock_t0, clock_last=clock_t0, pid=os.getpid(), host=os.uname().nodename,
-                n_steps=len(plan))).inserted_primary_key[0]
+                n_steps=len(plan))))
             conn.execute(insert(steps), [
                 {"campaign_id": cid, "idx": s.index, "orientation": s.orientation, "temperature_c": s.temperature_c,
                  "rate_dps": s.rate_dps, "status": "planned", "attempts": 0} for s in plan])
@@ -435,9 +458,9 @@ class Store:
 
     def save_fit(self, campaign_id: int, result: dict[str, Any], provenance: dict[str, Any]) -> int:
         with self.transaction() as conn:
-            return int(conn.execute(insert(fits).values(
+            return _inserted_id(conn.execute(insert(fits).values(
                 campaign_id=campaign_id, created_wall=time.time(), software_version=__version__,
-                provenance=json.dumps(provenance), result=json.dumps(result))).inserted_primary_key[0])
+                provenance=json.dumps(provenance), result=json.dumps(result))))
 
     def fits_frame(self, campaign_id: int) -> pd.DataFrame:
         with self.engine.connect() as conn:

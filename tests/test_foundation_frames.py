@@ -4,8 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from labrunner.drivers.imu_frames import FRAME_SIZE, FrameDecoder, crc16, encode_frames, unwrap_counter
 from labrunner.campaign_csv import COLUMNS, CampaignDataError, read_campaign, write_campaign
+from labrunner.drivers.imu_frames import FRAME_SIZE, FrameDecoder, crc16, encode_frames, unwrap_counter
 
 
 def _frames(n=200, start=0):

@@ -9,6 +9,7 @@ model was fitted to.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -16,6 +17,9 @@ import pandas as pd
 from labrunner.campaign_csv import OUTPUT_COLUMNS
 
 from .thermal_poly import PolyModel, TriadPoly
+
+if TYPE_CHECKING:  # rbf_model imports this module
+    from .rbf_model import RbfModel
 
 CHUNK = 1 << 15  # rows per pass: the temporaries stay in cache
 
@@ -78,14 +82,14 @@ def compensate_poly(model: PolyModel, y: np.ndarray, temp_c: np.ndarray) -> Comp
     return Compensated(values=out, extrapolated=extrap)
 
 
-def compensate(model: object, y: np.ndarray, temp_c: np.ndarray) -> Compensated:
+def compensate(model: PolyModel | RbfModel, y: np.ndarray, temp_c: np.ndarray) -> Compensated:
     """Compensate with a PolyModel or an RbfModel."""
     if isinstance(model, PolyModel):
         return compensate_poly(model, y, temp_c)
     return model.compensate(y, temp_c)  # RbfModel
 
 
-def compensate_frame(model: object, frame: pd.DataFrame) -> pd.DataFrame:
+def compensate_frame(model: PolyModel | RbfModel, frame: pd.DataFrame) -> pd.DataFrame:
     """Campaign frame in, the same frame with compensated outputs (+ `extrapolated`) out."""
     y = np.column_stack([frame[c].to_numpy(dtype=float) for c in OUTPUT_COLUMNS])
     return compensate(model, y, frame["imu_temp_c"].to_numpy(dtype=float)).as_frame(frame)

@@ -27,13 +27,15 @@ from typing import Any
 import numpy as np
 
 from .compensation import compensate
+from .rbf_model import RbfModel
 from .records import Records, TemperatureSteps, records_from_labels, reference_values
+from .thermal_poly import PolyModel
 from .triads import as_channel_dict
 
 SPLITS: tuple[str, ...] = ("random", "between_temperatures", "beyond_temperatures", "between_rates")
 STATIC_RATE_DPS = 0.05
 
-FitModels = Callable[[Records], Mapping[str, object]]  # training records -> {model name: model}
+FitModels = Callable[[Records], Mapping[str, PolyModel | RbfModel]]  # training records -> {model name: model}
 
 
 @dataclass
@@ -132,7 +134,7 @@ def _static_check(values: np.ndarray, ref: np.ndarray, static_rows: np.ndarray, 
                        float(np.sqrt(np.mean(ra ** 2))), float(np.sqrt(np.mean(rg ** 2))), n=int(v.shape[0]))
 
 
-def score(models: Mapping[str, object], a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
+def score(models: Mapping[str, PolyModel | RbfModel], a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
           result: SplitResult) -> None:
     """Fill `result` with the errors of raw data and every model on the given rows."""
     y = a["y"][rows]

@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from labrunner.version import __version__
 from labrunner.errors import UserError
+from labrunner.version import __version__
 
 from .evaluation import SPLITS, SplitResult, evaluate
 from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_model
@@ -72,9 +72,9 @@ class Models:
     def polynomial(self) -> PolyModel:
         return self.poly[self.poly_method]
 
-    def compensators(self) -> dict[str, object]:
+    def compensators(self) -> dict[str, PolyModel | RbfModel]:
         """Models scored by the evaluation, by display name."""
-        out: dict[str, object] = {"polynomial": self.polynomial}
+        out: dict[str, PolyModel | RbfModel] = {"polynomial": self.polynomial}
         other = [m for m in self.poly if m != self.poly_method]
         for m in other:
             out[f"polynomial_{m}"] = self.poly[m]
@@ -269,7 +269,7 @@ def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provena
         t2 = time.perf_counter()
         a = frame_arrays(frame)
 
-        def refit(train: Records) -> dict[str, object]:
+        def refit(train: Records) -> dict[str, PolyModel | RbfModel]:
             return fit_models(train, opt).compensators()
 
         evaluation = evaluate(a, records, models.steps, refit, opt.splits, opt.holdout_fraction, opt.eval_max_rows,

@@ -168,7 +168,7 @@ def farthest_points(z: np.ndarray, k: int, weights: np.ndarray | None = None) ->
     return np.array(chosen)
 
 
-def _gcv_orthogonal(d: np.ndarray, g: np.ndarray, zz: float, n: int, lams: np.ndarray) -> np.ndarray:
+def _gcv_orthogonal(d: np.ndarray, g: np.ndarray, zz: float, n: float, lams: np.ndarray) -> np.ndarray:
     """GCV at each lambda of a model with orthogonal columns (norms d, projections g)."""
     dl = d[None, :] + lams[:, None]
     gamma = np.sum(d[None, :] / dl, axis=1)

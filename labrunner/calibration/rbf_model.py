@@ -132,7 +132,7 @@ def train_rbf_model(records: Records, variant: str = "paper", base: PolyModel | 
     opt = options or RbfOptions()
     y = records.mean
     temp = records.temp_c
-    start = compensate_poly(base, y, temp).values if variant == "hybrid" else y
+    start = compensate_poly(base, y, temp).values if variant == "hybrid" and base is not None else y
     target = records.reference - start
     # Train as on the samples themselves: record means weigh by their row counts, and the
     # rows' scatter about each mean enters GCV as the constant it is (see rbf.train_rbf).

@@ -55,7 +55,9 @@ class StepCalibration:
 
 def _nan_to_none(a: np.ndarray) -> Any:
     arr = np.asarray(a, dtype=float)
-    return np.where(np.isfinite(arr), arr, None).tolist()
+    out = arr.astype(object)
+    out[~np.isfinite(arr)] = None
+    return out.tolist()
 
 
 def is_rotating(records: Records, tol_dps: float = 0.05) -> bool:

@@ -136,7 +136,7 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0) -
     notes: list[str] = []
     partial = ident.any(axis=1) & ~ident.all(axis=1)
     if partial.any():
-        blocks = ", ".join(_block_label(b) for b in np.flatnonzero(partial))
+        blocks = ", ".join(_block_label(int(b)) for b in np.flatnonzero(partial))
         notes.append(f"{triad}: some temperature coefficients of {blocks}"
                      " cannot be fitted from these temperatures; they are set to 0")
     missing = [(c, b) for c in range(3) for b in range(4) if not ident[b].any()]
@@ -248,7 +248,7 @@ def cv_order(records: Records, steps: TemperatureSteps, triad: str, max_order_: 
             total += float(np.sum(w[:, None] * err ** 2))
             weight += float(np.sum(w)) * 3
         scores[order] = total / weight
-    best = min(scores, key=scores.get)
+    best = min(scores, key=scores.__getitem__)
     return best, scores
 
 

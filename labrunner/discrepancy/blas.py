@@ -13,7 +13,7 @@ from __future__ import annotations
 import ctypes
 import glob
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 _SETTERS = ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads", "openblas_set_num_threads64_",
@@ -22,12 +22,15 @@ _GETTERS = ("scipy_openblas_get_num_threads64_", "scipy_openblas_get_num_threads
             "openblas_get_num_threads")
 
 
-def _libraries() -> list[tuple[object, object]]:
-    found = []
+def _libraries() -> list[tuple[Callable[..., object], Callable[..., int]]]:
+    """(setter, getter) of every OpenBLAS thread count found; the getters return a C int."""
+    found: list[tuple[Callable[..., object], Callable[..., int]]] = []
     for module in ("numpy", "scipy"):
         try:
             pkg = __import__(module)
         except ImportError:  # pragma: no cover - numpy is a dependency
+            continue
+        if pkg.__file__ is None:  # pragma: no cover - a namespace package has no folder of its own
             continue
         pattern = os.path.join(os.path.dirname(pkg.__file__), "..", f"{module}.libs", "*openblas*")
         for path in glob.glob(pattern):

@@ -58,6 +58,8 @@ def make_blocks(meas: Measurements, block_s: float | None = None, temp_step_c: f
                 target_blocks: int = 3000) -> Blocks:
     """Cut the rows into blocks (see module docstring)."""
     n = len(meas)
+    # Measurements.__post_init__ fills the per-row weights and spacings when they are not given.
+    assert meas.row_weight is not None and meas.row_spacing_s is not None
     t = meas.t_s
     dt = np.diff(t)
     spacing = np.maximum(meas.row_spacing_s[1:], meas.row_spacing_s[:-1])  # each kind of row its own gap

@@ -110,7 +110,7 @@ def full_fit(full: np.ndarray) -> tuple[np.ndarray, float]:
     """Coefficients fitted on all rows and their in-sample SSE, from the full Gram of [X | y]."""
     p = full.shape[0] - 1
     beta = solve(full[:p, :p], full[:p, p])
-    return beta, float(max(_quadratic(full, beta), 0.0))
+    return beta, max(float(_quadratic(full, beta)), 0.0)
 
 
 def extend_gram(base: np.ndarray, az: np.ndarray, zz: np.ndarray) -> np.ndarray:

@@ -101,7 +101,7 @@ class Engine:
         for i in (best - 2, best - 1, best + 1, best + 2):
             if 0 <= i < n:
                 ll(i)
-        return max(cache, key=cache.get)
+        return max(cache, key=cache.__getitem__)
 
     def drift_evidence(self, spec: Spec, channel: str, index: int) -> float:
         """2 * log-likelihood ratio of drift at rho[index] against no drift."""

@@ -54,6 +54,7 @@ def white_rms(density: float, spacing_s: np.ndarray) -> float:
 
 def row_spacing(meas: Measurements) -> np.ndarray:
     """(N,) each row's spacing to its neighbour within the run (typical spacing where alone)."""
+    assert meas.row_spacing_s is not None  # Measurements.__post_init__ fills it when it is not given
     return meas.row_spacing_s
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pandas as pd
 
-from labrunner.sims.campaign import CampaignPlan, synthesize
 from labrunner.imu.model import ImuModel, default_imu_model
+from labrunner.sims.campaign import CampaignPlan, synthesize
 from labrunner.sims.world import SimLabConfig
 
 # A smooth step in temperature that a cubic cannot follow (amplitudes: g and deg/s).

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-from calib_campaigns import make_campaign, nonlinear_model
 
 from labrunner.sims.campaign import triangular_rates
+
+from calib_campaigns import make_campaign, nonlinear_model
 
 
 @pytest.fixture(scope="session")

@@ -5,10 +5,11 @@ from __future__ import annotations
 import json
 
 import pytest
-from calib_campaigns import make_campaign
 
 from labrunner.campaign_csv import write_campaign
 from labrunner.cli import main
+
+from calib_campaigns import make_campaign
 
 
 @pytest.fixture(scope="module")

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from calib_campaigns import make_campaign
 
 from labrunner.calibration.fit import FitOptions, fit_campaign
 from labrunner.errors import UserError
 from labrunner.imu.model import default_imu_model
+
+from calib_campaigns import make_campaign
 
 FAST = FitOptions(rbf_variants=("paper",), rbf_export="paper", splits=("random",))
 TEMPS = (-20.0, 0.0, 20.0, 40.0)

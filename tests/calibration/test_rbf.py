@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from calib_campaigns import make_campaign
 
 from labrunner.calibration.rbf import farthest_points, forward_select, gaussian_design, ridge_gcv, train_rbf
 from labrunner.calibration.rbf_model import RbfOptions, network_inputs, train_rbf_model
 from labrunner.calibration.records import frame_arrays, reference_values, segment_records
 from labrunner.imu.model import default_imu_model
+
+from calib_campaigns import make_campaign
 
 
 def _smooth(x: np.ndarray) -> np.ndarray:

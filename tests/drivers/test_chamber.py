@@ -55,7 +55,8 @@ def test_setpoint_outside_range_is_refused_before_writing(server, clock):
     ch = _driver(server.port, clock)
     ch.set_setpoint(10.0)
     before = server.requests
-    with pytest.raises(LimitError, match=r"register 300: setpoint -80.0 C is outside .* -70.0..180.0 C; nothing was written"):
+    with pytest.raises(LimitError,
+                       match=r"register 300: setpoint -80.0 C is outside .* -70.0..180.0 C; nothing was written"):
         ch.set_setpoint(-80.0)
     # Only the (cached) range was consulted: no write reached the controller.
     assert server.requests == before

@@ -27,9 +27,9 @@ FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthChe
 
 scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True),
                     st.text(string.printable, max_size=12))
+keys = st.text(string.ascii_lowercase + "_", max_size=10)
 values = st.recursive(scalars, lambda inner: st.one_of(st.lists(inner, max_size=4),
-                                                        st.dictionaries(st.text(string.ascii_lowercase + "_", max_size=10),
-                                                                        inner, max_size=4)), max_leaves=12)
+                                                        st.dictionaries(keys, inner, max_size=4)), max_leaves=12)
 
 
 def _run_cli(args):
