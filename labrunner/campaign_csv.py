@@ -46,6 +46,8 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
         path = Path(source)
         if not path.exists():
             raise CampaignDataError(label, "file not found")
+        if path.is_dir():
+            raise CampaignDataError(label, "is a directory; expected a campaign CSV file")
         try:
             raw = pd.read_csv(path, dtype=str, keep_default_na=False, na_values=[], skipinitialspace=True)
         except pd.errors.EmptyDataError:

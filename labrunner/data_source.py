@@ -38,6 +38,8 @@ def load_campaign_data(path: str | Path, campaign: int | None = None, *, include
     p = Path(path)
     if not p.exists():
         raise CampaignDataError(str(p), "file not found")
+    if p.is_dir():
+        raise CampaignDataError(str(p), "is a directory; expected a campaign CSV or a labrunner database file")
     if is_sqlite(p):
         from labrunner.store import Store
 

@@ -142,6 +142,8 @@ def read_text(path: str | Path) -> str:
         return p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError([f"{p}: file not found"]) from None
+    except IsADirectoryError:
+        raise ConfigError([f"{p}: is a directory; expected a YAML file"]) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError([f"{p}: cannot read: {exc}"]) from None
 

@@ -36,7 +36,20 @@ from .selection import Evaluation, Searcher, SelectionResult
 from .terms import TermContext, TermFit, candidate_terms
 
 _MIN_BLOCKS = 40
+_MIN_FOLDS = 2  # held-out stretches with data: each fold's fit needs training data outside it
 _DRIFT_EVIDENCE = 10.0
+
+
+class TooLittleData(UserError):
+    """The rows cannot support a held-out diagnosis; the message says how much there is and what is needed
+    (the command prefixes the data's name)."""
+
+
+def _logged_s(meas: Measurements) -> float:
+    """Seconds of data: the time each run spans, summed."""
+    frame = pd.DataFrame({"run": meas.run, "t": meas.t_s})
+    spans = frame.groupby("run")["t"].agg(lambda t: t.max() - t.min())
+    return float(spans.sum())
 
 
 @dataclass
@@ -151,8 +164,9 @@ class _Diagnoser:
         self.coverage = assess(meas)
         self.blocks = make_blocks(meas, options.block_s)
         if len(self.blocks) < _MIN_BLOCKS:
-            raise UserError(f"too little data to diagnose: {len(meas)} rows make {len(self.blocks)} blocks of "
-                            f"steady conditions; at least {_MIN_BLOCKS} are needed")
+            raise TooLittleData(f"too little data to diagnose: {len(meas)} rows over {_logged_s(meas):.0f} s make "
+                                f"{len(self.blocks)} blocks of steady conditions; the diagnosis needs at least "
+                                f"{_MIN_BLOCKS}")
         self.ctx = TermContext(meas, self.blocks)
         self.terms = candidate_terms(self.ctx)
         wanted = set(options.causes) if options.causes else set(self.terms)
@@ -165,6 +179,12 @@ class _Diagnoser:
         err = meas.error
         self.segment_s = segment_length(self.blocks, options.n_folds)
         folds = time_folds(self.blocks, options.n_folds, self.segment_s)
+        if np.unique(folds).size < _MIN_FOLDS:
+            raise TooLittleData(
+                f"too little data to diagnose: {len(meas)} rows over {_logged_s(meas):.0f} s; the diagnosis holds "
+                f"out {self.segment_s:.0f} s stretches of each run in turn and needs data in at least {_MIN_FOLDS} "
+                f"of them: more than {self.segment_s:.0f} s in a run, or several runs (a campaign as `labrunner "
+                "export` writes it)")
         self.engine = Engine(self.builder, self.blocks, self.blocks.mean(err), build_drift_filter(self.blocks),
                              folds, options.n_folds)
         self.searcher = Searcher(self.engine, self.terms, self.allowed, options.min_evidence, options.confound_margin,
