@@ -22,15 +22,19 @@ if TYPE_CHECKING:
         AbortResult,
         Campaign,
         CampaignStatus,
+        CampaignSummary,
         Database,
         Event,
         NextStep,
+        OutputPathError,
         Progress,
         RunResult,
         Session,
         abort,
+        check_output,
         diagnose,
         fit,
+        list_campaigns,
         load_data,
         load_lab_config,
         load_procedure,
@@ -47,10 +51,10 @@ if TYPE_CHECKING:
     )
 
 __all__ = [
-    "AbortResult", "Campaign", "CampaignStatus", "Database", "Event", "NextStep", "Progress", "RunResult", "Session",
-    "UserError", "__version__", "abort", "diagnose", "fit", "load_data", "load_lab_config", "load_procedure",
-    "load_sim_config", "open", "read_campaign_csv", "resume", "run", "serve_sim", "start_resume", "start_run",
-    "status", "write_fit",
+    "AbortResult", "Campaign", "CampaignStatus", "CampaignSummary", "Database", "Event", "NextStep", "OutputPathError",
+    "Progress", "RunResult", "Session", "UserError", "__version__", "abort", "check_output", "diagnose", "fit",
+    "list_campaigns", "load_data", "load_lab_config", "load_procedure", "load_sim_config", "open",
+    "read_campaign_csv", "resume", "run", "serve_sim", "start_resume", "start_run", "status", "write_fit",
 ]
 _API = frozenset(__all__) - {"UserError", "__version__"}  # what __getattr__ loads from labrunner.api
 

@@ -28,8 +28,9 @@ from typing import TYPE_CHECKING, Any
 from labrunner.campaign_abort import AbortResult, abort_campaign
 from labrunner.campaign_analysis import diagnose, fit, load_data, read_campaign_csv, write_fit
 from labrunner.campaign_session import Progress, ProgressCallback, RunResult, Session, start_resume, start_run
-from labrunner.database import Campaign, CampaignStatus, Database, Event, NextStep, open_database
+from labrunner.database import Campaign, CampaignStatus, CampaignSummary, Database, Event, NextStep, open_database
 from labrunner.errors import UserError
+from labrunner.output_paths import OutputPathError, check_output
 
 if TYPE_CHECKING:
     from labrunner.lab import LabConfig
@@ -40,9 +41,10 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "AbortResult", "Campaign", "CampaignStatus", "Database", "Event", "NextStep", "Progress", "RunResult", "Session",
-    "UserError", "abort", "diagnose", "fit", "load_data", "load_lab_config", "load_procedure", "load_sim_config",
-    "open", "read_campaign_csv", "resume", "run", "serve_sim", "start_resume", "start_run", "status", "write_fit",
+    "AbortResult", "Campaign", "CampaignStatus", "CampaignSummary", "Database", "Event", "NextStep", "OutputPathError",
+    "Progress", "RunResult", "Session", "UserError", "abort", "check_output", "diagnose", "fit", "list_campaigns",
+    "load_data", "load_lab_config", "load_procedure", "load_sim_config", "open", "read_campaign_csv", "resume", "run",
+    "serve_sim", "start_resume", "start_run", "status", "write_fit",
 ]
 
 
@@ -52,26 +54,28 @@ __all__ = [
 def run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | Path | LabConfig = "sim",
         seed: int | None = None, faults: int = 0, sim_config: str | Path | dict[str, Any] | None = None,
         fit_out: str | Path | None = None, auto_resume: bool = True, progress: ProgressCallback | None = None,
-        handle_signals: bool = False) -> RunResult:
+        handle_signals: bool = False, force: bool = False) -> RunResult:
     """Run `procedure` (a YAML path or a parsed `Procedure`) as a new campaign stored in `db`.
 
     `lab="sim"` is a dry run against the simulated lab on a virtual clock (`seed`, `faults` random
     injected faults, `sim_config` a path or mapping); otherwise `lab` is a lab configuration (YAML
     path or `LabConfig`). The end-of-run fit (the procedure's `fit:`) writes its models to `fit_out`
-    (default `<db>_fit/` next to the database). `progress` is called with a `Progress` after every
+    (default `<db>_fit/campaign-<id>/` next to the database; one that is not empty only with `force`,
+    checked before the run starts). `progress` is called with a `Progress` after every
     transition and record. `handle_signals`: Ctrl-C pauses, a second one aborts to the safe state.
     """
     with start_run(procedure, db=db, lab=lab, seed=seed, faults=faults, sim_config=sim_config, fit_out=fit_out,
-                   auto_resume=auto_resume) as session:
+                   auto_resume=auto_resume, force=force) as session:
         return session.execute(progress, handle_signals=handle_signals)
 
 
 def resume(db: str | Path, *, campaign: int | None = None, lab: str | Path | LabConfig | None = None,
            fit_out: str | Path | None = None, progress: ProgressCallback | None = None,
-           handle_signals: bool = False) -> RunResult:
+           handle_signals: bool = False, force: bool = False) -> RunResult:
     """Continue a paused, aborted, failed or killed campaign (default: the latest in `db`) from its
-    first missing step; a real lab uses the stored lab configuration unless `lab` is given."""
-    with start_resume(db, campaign=campaign, lab=lab, fit_out=fit_out) as session:
+    first missing step; a real lab uses the stored lab configuration unless `lab` is given. A given
+    `fit_out` must be empty or new unless `force`."""
+    with start_resume(db, campaign=campaign, lab=lab, fit_out=fit_out, force=force) as session:
         return session.execute(progress, handle_signals=handle_signals)
 
 
@@ -90,6 +94,13 @@ def abort(db: str | Path, *, campaign: int | None = None, wait_s: float = 60.0,
 def open(db: str | Path) -> Database:  # noqa: A001 - `labrunner.open(db)`, as `sqlite3.connect`/`h5py.File`
     """Open a labrunner store for reading (a context manager; also usable while a campaign runs)."""
     return open_database(db)
+
+
+def list_campaigns(db: str | Path) -> list[CampaignSummary]:
+    """Every campaign in `db` (what `labrunner list` shows): id, name, status, steps recorded/planned,
+    samples, mode, the process holding a running one and the age of its last heartbeat."""
+    with open(db) as database:
+        return database.summaries()
 
 
 def status(db: str | Path, *, campaign: int | None = None, events: int = 8) -> CampaignStatus:

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from labrunner.errors import UserError
+from labrunner.output_paths import check_output
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -38,13 +39,14 @@ def load_data(data: str | Path, *, campaign: int | None = None, include_monitor:
 
 
 def fit(data: str | Path | CampaignData, *, campaign: int | None = None, options: FitOptions | None = None,
-        save: bool = True, out: str | Path | None = None, progress: Callable[[str], None] | None = None,
-        **overrides: Any) -> FitResult:
+        save: bool = True, out: str | Path | None = None, force: bool = False,
+        progress: Callable[[str], None] | None = None, **overrides: Any) -> FitResult:
     """Fit the calibration models to a campaign (a store's campaign, or a campaign CSV): what
     `labrunner fit` computes. `options` (a `labrunner.calibration.FitOptions`) and `overrides`
     (its fields: `poly_order`, `poly_method`, `rbf_variants`, `rbf_export`, `evaluate`, `splits`,
     `seed`, ...) say what to fit. With a store and `save`, the fit is stored in it with its
-    provenance; with `out`, the model files are written there. `progress` gets messages."""
+    provenance; with `out`, the model files are written there (a directory that is not empty only
+    with `force`; never one holding the data). `progress` gets messages."""
     import dataclasses
 
     from labrunner.calibration.fit import FitOptions, fit_campaign
@@ -54,6 +56,9 @@ def fit(data: str | Path | CampaignData, *, campaign: int | None = None, options
         opts = dataclasses.replace(options or FitOptions(), **overrides)
     except TypeError as exc:
         raise UserError(f"fit options: {exc}") from None
+    source = data.provenance.get("source") if isinstance(data, CampaignData) else data
+    if out is not None:  # before the work and before the fit is stored: a refusal changes nothing
+        check_output(out, inputs=[source], force=force, directory=True, option="out")
     loaded = data if isinstance(data, CampaignData) else load_data(data, campaign=campaign)
     result = fit_campaign(loaded.frame, opts, provenance=loaded.provenance, progress=progress)
     prov = loaded.provenance
@@ -67,14 +72,16 @@ def fit(data: str | Path | CampaignData, *, campaign: int | None = None, options
             where = prov["source"] if isinstance(data, CampaignData) else data
             progress(f"fit {fit_id} stored in {where} (campaign {prov['campaign_id']})")
     if out is not None:
-        write_fit(result, out)
+        write_fit(result, out, force=force)
     return result
 
 
-def write_fit(result: FitResult, out: str | Path, summary: str | None = None) -> list[str]:
-    """Write a fit's model JSON files, C header, summary and evaluation tables into `out`; returns the names."""
+def write_fit(result: FitResult, out: str | Path, summary: str | None = None, *, force: bool = False) -> list[str]:
+    """Write a fit's model JSON files, C header, summary and evaluation tables into `out`; returns the names.
+    `out` may not hold the fitted data; a directory that is not empty is written into only with `force`."""
     from labrunner.calibration.outputs import write_outputs
 
+    check_output(out, inputs=[result.provenance.get("source")], force=force, directory=True, option="out")
     return write_outputs(result, Path(out), summary)
 
 

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from labrunner.database import process_alive
 from labrunner.errors import UserError
+from labrunner.output_paths import check_output
 from labrunner.sim_config import has_fault_plan, sim_config_dict
 
 if TYPE_CHECKING:
@@ -241,9 +242,17 @@ def _runner(procedure: Procedure, lab: Lab, store: Store, cid: int, fit_out: Pat
     return runner
 
 
-def fit_dir(db: Path, given: str | Path | None) -> Path:
-    """Where the end-of-run fit writes its models: given, or next to the database (<db>_fit/)."""
-    return Path(given) if given is not None else db.with_name(db.stem + "_fit")
+def fit_dir(db: Path, given: str | Path | None, campaign_id: int) -> Path:
+    """Where the end-of-run fit writes its models: given, or the campaign's own directory next to the
+    database (<db>_fit/campaign-<id>/), so a second campaign in the store keeps the first one's models."""
+    return Path(given) if given is not None else db.with_name(db.stem + "_fit") / f"campaign-{campaign_id}"
+
+
+def _check_fit_dir(procedure: Procedure, out: Path, inputs: list[Any], force: bool) -> None:
+    """Refuse, before anything runs, a fit directory that holds an input or (without `force`) files."""
+    if procedure.model.fit.run:
+        check_output(out, inputs=[i for i in inputs if isinstance(i, (str, Path))], force=force, directory=True,
+                     option="the fit directory")
 
 
 # --- run, resume ---------------------------------------------------------------------------------------------
@@ -251,8 +260,9 @@ def fit_dir(db: Path, given: str | Path | None) -> Path:
 
 def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | Path | LabConfig = "sim",
               seed: int | None = None, faults: int = 0, sim_config: str | Path | dict[str, Any] | None = None,
-              fit_out: str | Path | None = None, auto_resume: bool = True) -> Session:
-    """A new campaign of `procedure` in `db`, on the simulated lab (`lab="sim"`) or a real one."""
+              fit_out: str | Path | None = None, auto_resume: bool = True, force: bool = False) -> Session:
+    """A new campaign of `procedure` in `db`, on the simulated lab (`lab="sim"`) or a real one. The
+    end-of-run fit's directory must be empty or new unless `force`."""
     from labrunner.lab import lab_config_from_dict, real_lab
     from labrunner.procedure import Procedure, load_procedure
     from labrunner.store import Store
@@ -285,11 +295,16 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
         the_lab.close()
         raise
     try:
+        # The id new_campaign will give (SQLite's largest + 1): the default fit directory is checked
+        # before the campaign exists, so a refusal adds nothing to the store.
+        planned_id = max(store.campaign_ids(), default=0) + 1
+        _check_fit_dir(proc, fit_dir(db, fit_out, planned_id),
+                       [db, proc_path, sim_config, None if sim else lab], force)
         cid = store.new_campaign(name=proc.name, procedure_text=proc.text, procedure_path=proc_path,
                                  procedure_sha256=proc.sha256, lab_config=lab_dict, mode="sim" if sim else "lab",
                                  sim_config=sim_dict, clock_t0=the_lab.clock.now(), plan=proc.steps())
         auto = AUTO_RESUME_S if (sim and has_fault_plan(sim_dict) and auto_resume) else None
-        runner = _runner(proc, the_lab, store, cid, fit_dir(db, fit_out), sim_dict, auto)
+        runner = _runner(proc, the_lab, store, cid, fit_dir(db, fit_out, cid), sim_dict, auto)
     except BaseException:
         the_lab.close()
         store.close()
@@ -299,7 +314,7 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
 
 
 def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path | LabConfig | None = None,
-                 fit_out: str | Path | None = None) -> Session:
+                 fit_out: str | Path | None = None, force: bool = False) -> Session:
     """Continue a paused, aborted, failed or killed campaign from its first missing step. A complete
     campaign gives a session with nothing to run (`already_done`)."""
     from labrunner.lab import lab_config_from_dict, real_lab
@@ -317,6 +332,8 @@ def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path
             return Session(store, cid, procedure, mode=info.mode, db=db, status_before="done", next_step=None)
         if info.status == "running" and process_alive(info.pid, info.host):
             raise UserError(f"campaign {cid} is running (process {info.pid}); use labrunner status or abort")
+        if fit_out is not None:  # the default directory is this campaign's own: its fit is written again
+            _check_fit_dir(procedure, Path(fit_out), [db, lab], force)
         nxt = store.next_step(cid)
         orientation = procedure.steps()[nxt].orientation if nxt is not None else None
         if info.mode == "sim":
@@ -329,7 +346,7 @@ def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path
                                                                                   "stored lab configuration")
             the_lab = real_lab(config, max_rate_dps=procedure.model.safety.max_rate_dps)
         faulty = info.mode == "sim" and has_fault_plan(info.sim_config)
-        runner = _runner(procedure, the_lab, store, cid, fit_dir(db, fit_out), info.sim_config,
+        runner = _runner(procedure, the_lab, store, cid, fit_dir(db, fit_out, cid), info.sim_config,
                          AUTO_RESUME_S if faulty else None)
     except BaseException:
         if the_lab is not None:

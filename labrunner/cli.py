@@ -15,6 +15,7 @@ from labrunner.logs import LEVELS, configure
 # Modules with `register(subparsers)`; each sets `func(args) -> int` on its parser.
 COMMAND_MODULES = (
     "labrunner.commands.campaign",  # run, resume, status, abort, export
+    "labrunner.commands.listing",  # list
     "labrunner.commands.sim",  # sim serve
     "labrunner.commands.check",  # check
     "labrunner.calibration.command",  # fit

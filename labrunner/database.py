@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from labrunner.campaign_analysis import diagnose, fit
 from labrunner.errors import UserError
+from labrunner.output_paths import check_output
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -85,11 +86,41 @@ class CampaignStatus:
         return self.steps_done / max(self.steps_total, 1)
 
 
+@dataclass(frozen=True)
+class CampaignSummary:
+    """One campaign of a store as `labrunner list` shows it, read in one query."""
+
+    campaign_id: int
+    name: str
+    status: str  # running, paused, aborted, failed, done
+    mode: str  # "sim" or "lab"
+    steps_done: int
+    steps_total: int
+    samples: int  # in the recorded steps
+    pid: int | None  # the process running it (stored while it runs; cleared when it ends)
+    host: str | None
+    process_alive: bool | None  # of a running campaign: None when it runs on another host (unknowable here)
+    heartbeat_wall: float  # wall time of the last heartbeat or status change
+    heartbeat_age_s: float  # its age when read
+
+    @property
+    def holder(self) -> str | None:
+        """Who holds a running campaign, e.g. "pid 4242 on lab-pc" (None unless running)."""
+        if self.status != "running" or self.pid is None:
+            return None
+        return f"pid {self.pid} on {self.host or '?'}"
+
+
 def open_database(db: str | Path) -> Database:
     """Open a labrunner store for reading (a context manager; also usable while a campaign runs)."""
+    from labrunner.data_source import is_sqlite
     from labrunner.store import Store
 
-    return Database(Store.open_existing(db))
+    path = Path(db)
+    # Looked at before SQLite opens it: opening an empty or foreign file in WAL mode writes to it.
+    if path.is_file() and not is_sqlite(path):
+        raise UserError(f"{path}: not a labrunner database" + (" (an empty file)" if path.stat().st_size == 0 else ""))
+    return Database(Store.open_existing(path))
 
 
 class Database:
@@ -104,6 +135,45 @@ class Database:
 
     def campaigns(self) -> list[Campaign]:
         return [Campaign(self, cid) for cid in self.store.campaign_ids()]
+
+    def summaries(self) -> list[CampaignSummary]:
+        """Every campaign with its status, progress, mode, holder and last heartbeat (`labrunner list`)."""
+        import time
+
+        from sqlalchemy import case, func, select
+
+        from labrunner.store import campaigns, steps
+
+        done = func.coalesce(func.sum(case((steps.c.status == "done", 1), else_=0)), 0)
+        samples = func.coalesce(func.sum(case((steps.c.status == "done", steps.c.n_samples), else_=0)), 0)
+        query = (select(campaigns.c.id, campaigns.c.name, campaigns.c.status, campaigns.c.mode, campaigns.c.n_steps,
+                        campaigns.c.pid, campaigns.c.host, campaigns.c.updated_wall, done.label("done"),
+                        samples.label("samples"))
+                 .select_from(campaigns.outerjoin(steps, steps.c.campaign_id == campaigns.c.id))
+                 .group_by(campaigns.c.id).order_by(campaigns.c.id))
+        # One query for the whole store: a paper campaign has 4080 steps, a store may hold many.
+        with self.store.engine.connect() as conn:
+            rows = conn.execute(query).all()
+        now = time.time()
+        here = os.uname().nodename
+        return [CampaignSummary(
+            campaign_id=int(r.id), name=str(r.name), status=str(r.status), mode=str(r.mode), steps_done=int(r.done),
+            steps_total=int(r.n_steps), samples=int(r.samples), pid=r.pid, host=r.host,
+            process_alive=(process_alive(r.pid, r.host) if r.status == "running" and r.host == here else None),
+            heartbeat_wall=float(r.updated_wall), heartbeat_age_s=max(0.0, now - float(r.updated_wall)))
+            for r in rows]
+
+    def summary(self) -> pd.DataFrame:
+        """`summaries()` as a frame, one row per campaign: the `CampaignSummary` fields and `holder`."""
+        import dataclasses
+
+        import pandas as pd
+
+        names = [f.name for f in dataclasses.fields(CampaignSummary)]
+        rows = self.summaries()
+        frame = pd.DataFrame([dataclasses.astuple(s) for s in rows], columns=names).astype({"pid": "Int64"})
+        frame["holder"] = pd.Series([s.holder for s in rows], dtype=object)
+        return frame
 
     def campaign(self, id: int | None = None) -> Campaign:  # noqa: A002 - the campaign's id, as in the store
         """The campaign `id`, or the latest one in the file."""
@@ -179,19 +249,24 @@ class Campaign:
         return self._store.fits_frame(self.id)
 
     def fit(self, *, options: FitOptions | None = None, save: bool = True, out: str | Path | None = None,
-            progress: Callable[[str], None] | None = None, **overrides: Any) -> FitResult:
+            force: bool = False, progress: Callable[[str], None] | None = None, **overrides: Any) -> FitResult:
         """Fit the calibration models to the recorded steps, stored with the campaign unless
-        `save=False` (see `labrunner.fit`)."""
-        return fit(self.data(), options=options, save=save, out=out, progress=progress, **overrides)
+        `save=False`; `out` as in `labrunner.fit` (a non-empty directory only with `force`)."""
+        if out is not None:  # before reading and fitting: a refused directory costs nothing
+            check_output(out, inputs=[self.db.path], force=force, directory=True, option="out")
+        return fit(self.data(), options=options, save=save, out=out, force=force, progress=progress, **overrides)
 
     def diagnose(self, **options: Any) -> Diagnosis:
         """Diagnose the simulated IMU model against this campaign, monitor rows included (see `labrunner.diagnose`)."""
         return diagnose(self.data(include_monitor=True), **options)
 
-    def export_csv(self, path: Any, include_monitor: bool = False) -> int:
-        """Write the campaign CSV format (a path or a text stream); returns the number of rows."""
+    def export_csv(self, path: Any, include_monitor: bool = False, force: bool = False) -> int:
+        """Write the campaign CSV format (a path or a text stream); returns the number of rows. A path
+        may not be the store (or its -wal/-shm), and an existing file is overwritten only with `force`."""
         from labrunner.campaign_csv import write_campaign
 
+        if isinstance(path, (str, Path)):
+            path = check_output(path, inputs=[self.db.path], force=force, option="--csv")
         frame = self._store.samples_frame(self.id, include_monitor=include_monitor)
         if frame.empty:
             raise UserError(f"{self.db.path}: campaign {self.id} has no recorded samples to export")

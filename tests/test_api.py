@@ -51,9 +51,13 @@ def test_docs_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caps
     # What the examples claim in their comments is what happened.
     result = ns["result"]
     assert result.state == "done" and result.exit_code == 0 and result.steps_done == result.steps_total == 192
-    assert (tmp_path / "quick_fit" / "polynomial.json").exists() and (tmp_path / "fit" / "rbf.json").exists()
+    assert result.fit_out == Path("quick_fit") / "campaign-1"  # each campaign's end-of-run fit in its own directory
+    assert (tmp_path / "quick_fit" / "campaign-1" / "polynomial.json").exists()
+    assert (tmp_path / "fit" / "rbf.json").exists()
     assert sorted(ns["fit"].model_dicts()) == ["polynomial", "rbf"]
     assert ns["rows"] == 192 * 500 and (tmp_path / "quick.csv").exists()
+    assert "1 done 192/192 sim" in out  # the store's summary
+    assert "--csv quick.db is the store quick.db; refusing" in out and "quick.csv exists; use --force" in out
     paused, finished = ns["paused"], ns["finished"]
     assert (paused.state, paused.exit_code, paused.steps_done) == ("paused", 3, 5)
     assert (finished.state, finished.steps_recorded) == ("done", N_STEPS - 5)

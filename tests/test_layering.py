@@ -50,6 +50,7 @@ ROOMS: dict[str, str] = {
     "labrunner.logs": "base",
     "labrunner.fault_kinds": "base",
     "labrunner.version": "base",
+    "labrunner.output_paths": "base",
     "labrunner": "composition",  # the package's __init__: the public Python API
 }
 

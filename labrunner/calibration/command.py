@@ -11,6 +11,7 @@ from typing import Any
 
 from labrunner import api
 from labrunner.errors import UserError
+from labrunner.output_paths import check_output
 
 from .evaluation import SPLITS
 from .fit import FitOptions
@@ -43,6 +44,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.add_argument("--no-store", action="store_true",
                    help="with a database: do not store this fit in it (stored by default, with its provenance)")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite an existing --json file and write into a non-empty --out directory")
     p.set_defaults(func=run)
 
 
@@ -64,6 +67,11 @@ def _options(args: argparse.Namespace) -> FitOptions:
 
 def run(args: argparse.Namespace) -> int:
     options = _options(args)
+    # Before the fit is computed and stored: a refused output leaves the store as it was.
+    if args.json:
+        check_output(args.json, inputs=[args.data], force=args.force, option="--json", allow_stdout=True)
+    if args.out:
+        check_output(args.out, inputs=[args.data], force=args.force, directory=True, option="--out")
     start = time.perf_counter()
 
     def progress(msg: str) -> None:

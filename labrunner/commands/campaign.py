@@ -27,7 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--faults", type=int, default=0, metavar="N",
                      help="dry runs: inject N seeded random instrument faults across the campaign")
     run.add_argument("--fit-out", type=Path, default=None,
-                     help="directory for the fitted models (default: next to the database, <db>_fit/)")
+                     help="directory for the fitted models (default: next to the database, <db>_fit/campaign-<id>/)")
+    run.add_argument("--force", action="store_true", help="let the end-of-run fit write into a non-empty --fit-out")
     run.add_argument("--no-auto-resume", action="store_true",
                      help="dry runs with injected faults: stop at a fault pause instead of resuming after 15 min "
                           "of lab time as an operator would")
@@ -39,6 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     res.add_argument("--campaign", type=int, default=None, help="campaign id (default: the latest in the file)")
     res.add_argument("--lab", type=Path, metavar="LAB.yaml", help="lab configuration (default: the one stored)")
     res.add_argument("--fit-out", type=Path, default=None)
+    res.add_argument("--force", action="store_true", help="let the end-of-run fit write into a non-empty --fit-out")
     res.add_argument("--quiet", action="store_true")
     res.set_defaults(func=cmd_resume)
 
@@ -59,6 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.add_argument("db", type=Path)
     ex.add_argument("--csv", type=Path, required=True, help="output CSV file ('-' for stdout)")
     ex.add_argument("--campaign", type=int, default=None)
+    ex.add_argument("--force", action="store_true", help="overwrite an existing CSV file")
     ex.add_argument("--with-monitor", action="store_true",
                     help="include the 1 s monitor rows logged while ramping and soaking")
     ex.set_defaults(func=cmd_export)
@@ -94,7 +97,7 @@ def _execute(session: api.Session, quiet: bool, db: Path) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     with api.start_run(args.procedure, db=args.db, lab="sim" if args.sim else args.lab, seed=args.seed,
                        faults=args.faults, sim_config=args.sim_config, fit_out=args.fit_out,
-                       auto_resume=not args.no_auto_resume) as session:
+                       auto_resume=not args.no_auto_resume, force=args.force) as session:
         print(f"campaign {session.campaign_id} '{session.procedure.name}' in {args.db}: {session.steps_total} steps, "
               f"{session.planned_samples:,} samples planned, about {session.estimated_lab_s / 3600:.1f} h of lab "
               "time" + (" (dry run, simulated lab)" if args.sim else ""), file=sys.stderr)
@@ -102,7 +105,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    with api.start_resume(args.db, campaign=args.campaign, lab=args.lab, fit_out=args.fit_out) as session:
+    with api.start_resume(args.db, campaign=args.campaign, lab=args.lab, fit_out=args.fit_out,
+                          force=args.force) as session:
         if session.already_done:
             print(f"campaign {session.campaign_id} in {args.db} is complete; nothing to resume")
             return 0
@@ -170,7 +174,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     with api.open(args.db) as db:
         campaign = db.campaign(args.campaign)
         to_stdout = str(args.csv) == "-"
-        rows = campaign.export_csv(sys.stdout if to_stdout else args.csv, include_monitor=args.with_monitor)
+        rows = campaign.export_csv(sys.stdout if to_stdout else args.csv, include_monitor=args.with_monitor,
+                                   force=args.force)
     if not to_stdout:
         print(f"wrote {rows:,} rows of campaign {campaign.id} to {args.csv}", file=sys.stderr)
     return 0

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from labrunner import api
+from labrunner.output_paths import check_output
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,6 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument("--config", type=Path,
                        help="sim configuration (YAML): seed, plant parameters, IMU model, faults")
     serve.add_argument("--lab-config", type=Path, help="also write a lab configuration (YAML) pointing at these sims")
+    serve.add_argument("--force", action="store_true", help="overwrite an existing --lab-config file")
     serve.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
     serve.set_defaults(func=serve_command)
     sim.set_defaults(func=lambda args: (sim.print_help(), 2)[1])
@@ -41,6 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def serve_command(args: argparse.Namespace) -> int:
     import yaml
 
+    if args.lab_config:  # before the servers start: a refusal leaves nothing running
+        check_output(args.lab_config, inputs=[args.config], force=args.force, option="--lab-config")
     lab = api.serve_sim(config=args.config, speed=args.speed, host=args.host, link=args.link,
                         chamber_transport=args.chamber_transport, profile=args.profile,
                         ports=(args.chamber_port, args.table_port, args.imu_port))

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from labrunner import api
 from labrunner.errors import UserError
+from labrunner.output_paths import check_output
 
 from .terms import CAUSE_ORDER
 
@@ -29,15 +30,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                     + ",".join(CAUSE_ORDER))
     p.add_argument("--min-evidence", type=float, default=10.0,
                    help="held-out evidence a cause must exceed (2 x log-likelihood, after the parameter charge)")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite existing --json and --model files and write into a non-empty --report directory")
     p.set_defaults(func=handler)
 
 
 def handler(args: argparse.Namespace) -> int:
     json_out = Path(args.json_out)
     model_out = Path(args.model) if args.model else json_out.with_suffix(".imu_model.json")
-    for target in (json_out, model_out):
-        if not target.parent.exists():
-            raise UserError(f"cannot write {target}: directory {target.parent} does not exist")
+    # All outputs checked before the (long) diagnosis: none may be the data, none overwritten unasked.
+    checked_json = check_output(json_out, inputs=[args.data], force=args.force, option="--json")
+    if check_output(model_out, inputs=[args.data], force=args.force, option="--model") == checked_json:
+        raise UserError(f"--model {model_out} and --json {json_out} are the same file; give two paths")
+    if args.report:
+        check_output(args.report, inputs=[args.data], force=args.force, directory=True, option="--report")
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip()) if args.causes else None
     data = api.load_data(args.data, campaign=args.campaign, include_monitor=True)  # ramps and soaks too
     result = api.diagnose(data, min_evidence=args.min_evidence, causes=causes)
