@@ -15,7 +15,7 @@ def fit_and_store(store: Store, campaign_id: int, fit_cfg: Fit, out_dir: str | P
     """Fit the campaign's records as the procedure's `fit` section says; returns the summary text."""
     # Imported here: the calibration stack (scipy, matplotlib) is only needed once a campaign ends.
     from labrunner.calibration.fit import FitOptions, fit_campaign
-    from labrunner.calibration.outputs import write_outputs
+    from labrunner.calibration.outputs import write_fit_files
     from labrunner.calibration.report import summary_markdown
 
     data = store.campaign_data(campaign_id)
@@ -27,5 +27,7 @@ def fit_and_store(store: Store, campaign_id: int, fit_cfg: Fit, out_dir: str | P
     log.info("campaign %d: fit stored", campaign_id)
     text = summary_markdown(result)
     if out_dir is not None:
-        write_outputs(result, Path(out_dir), text)
+        # The figures' section (what was drawn, what was not and why) ends the summary on the terminal too.
+        _, figures = write_fit_files(result, Path(out_dir), text)
+        text += "\n\n" + figures
     return text

@@ -133,6 +133,9 @@ class FitResult:
     provenance: dict[str, Any]
     data_summary: dict[str, Any]
     timings_s: dict[str, float]
+    # The rows fitted, kept (not copied, not serialised) for the figures of static samples: the
+    # norms before and after compensation and the Allan deviation need samples, not record means.
+    frame: pd.DataFrame | None = field(default=None, repr=False)
 
     @property
     def polynomial(self) -> PolyModel:
@@ -280,4 +283,5 @@ def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provena
     prov["software"] = {"name": "labrunner", "version": __version__}
     prov["fitted_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     return FitResult(options=opt, models=models, records=records, evaluation=evaluation, provenance=prov,
-                     data_summary=summarize_data(frame, records, models.steps), timings_s=timings)
+                     data_summary=summarize_data(frame, records, models.steps), timings_s=timings,
+                     frame=frame)

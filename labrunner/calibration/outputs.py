@@ -1,16 +1,33 @@
-"""Writes a fit's files: model JSON, the C header, the summary and the evaluation tables."""
+"""Writes a fit's files: model JSON, the C header, the figures, the summary and the evaluation tables."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from .export import save_model, write_c_header
 from .fit import FitResult
 from .report import evaluation_csv, summary_markdown
 
+log = logging.getLogger(__name__)
 
-def write_outputs(result: FitResult, out: Path, summary: str | None = None) -> list[str]:
-    """Write the model JSON files, the C header and the evaluation tables into `out`; returns the names."""
+
+def draw_figures(result: FitResult, out: Path) -> tuple[list[str], str]:
+    """The figures (PNG) in `out`: their names and the summary's "Figures" section. Never raises:
+    the models are written already and a figure is only a view of them."""
+    try:
+        from .figures import write_figures  # matplotlib and allantools load only when figures are drawn
+
+        report = write_figures(result, out)
+    except Exception as exc:
+        log.warning("figures not drawn: %s: %s", type(exc).__name__, exc, exc_info=log.isEnabledFor(logging.DEBUG))
+        return [], f"## Figures\n\nNo figures: {type(exc).__name__}: {exc}"
+    return list(report.written), report.markdown()
+
+
+def write_fit_files(result: FitResult, out: Path, summary: str | None = None) -> tuple[list[str], str]:
+    """Write the model JSON files, the C header, the figures, the summary and the evaluation tables into
+    `out`; returns the names written and the figures section appended to summary.md."""
     out.mkdir(parents=True, exist_ok=True)
     prov = result.provenance
     save_model(result.polynomial, out / "polynomial.json", prov)
@@ -21,6 +38,14 @@ def write_outputs(result: FitResult, out: Path, summary: str | None = None) -> l
     comment = (f"labrunner {prov.get('software', {}).get('version', '?')}, data {prov.get('source', '?')}, "
                f"fitted {prov.get('fitted_at', '?')}")
     write_c_header(out / "imu_calibration.h", result.polynomial, result.rbf, comment=comment)
-    (out / "summary.md").write_text((summary if summary is not None else summary_markdown(result)) + "\n")
+    figures, section = draw_figures(result, out)
+    text = summary if summary is not None else summary_markdown(result)
+    (out / "summary.md").write_text(text + "\n\n" + section + "\n")
     (out / "evaluation.csv").write_text(evaluation_csv(result))
-    return written + ["imu_calibration.h", "summary.md", "evaluation.csv"]
+    return written + ["imu_calibration.h", "summary.md", "evaluation.csv"] + figures, section
+
+
+def write_outputs(result: FitResult, out: Path, summary: str | None = None) -> list[str]:
+    """Write the model JSON files, the C header, the figures and the evaluation tables into `out`; returns
+    the names."""
+    return write_fit_files(result, out, summary)[0]

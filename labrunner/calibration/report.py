@@ -9,6 +9,7 @@ import numpy as np
 
 from .evaluation import SplitResult
 from .fit import FitResult
+from .headline import Headline, gain_pct, headline, triad_rms
 from .triads import AXES, CHANNELS, TRIAD_SLICE, UNITS
 
 TRIAD_TITLES = {"accel": "Accelerometer", "gyro": "Gyroscope"}
@@ -82,11 +83,66 @@ def coefficient_table(result: FitResult, triad: str) -> str:
     return _table(header, rows)
 
 
+def _exported_sentence(result: FitResult, h: Headline) -> str:
+    poly = f"the polynomial ({h.polynomial}; `lr_poly_compensate`, polynomial.json)"
+    if result.rbf is None:
+        return f"**Exported** to the C header imu_calibration.h: {poly}; no RBF network was trained."
+    return (f"**Exported** to the C header imu_calibration.h: the RBF network `{h.exported}` "
+            f"(`lr_rbf_compensate`, rbf.json) and {poly}.")
+
+
+def headline_lines(result: FitResult) -> list[str]:
+    """The first lines of the summary: the exported model, its held-out gain, what was not fitted."""
+    h = headline(result)
+    out = [_exported_sentence(result, h), ""]
+    if h.split is None:
+        why = "no evaluation ran (--no-eval)" if not result.evaluation else "every evaluation split was skipped"
+        out += [f"**Held-out gain:** not measured: {why}.", ""]
+    else:
+        out += [f"**Held-out gain** of `{h.exported}` on the `{h.split.name}` split, {h.split.description}; "
+                "RMS error of the held-out samples over x, y, z:", ""]
+        for triad, g in h.gains.items():
+            unit = UNITS[triad]
+            line = (f"- {TRIAD_TITLES[triad].lower()}: {_g(g.raw_rms, 3)} {unit} raw -> {_g(g.exported_rms, 3)} "
+                    f"{unit}: gain {_pct(g.gain_vs_raw_pct)} % over raw")
+            if h.exported != "polynomial":
+                line += (f", {_pct(g.gain_vs_polynomial_pct)} % over the polynomial "
+                         f"({_g(g.polynomial_rms, 3)} {unit})")
+            if g.best_model != h.exported and g.best_rms < 0.99 * g.exported_rms:  # 1 %: not mere noise
+                line += f"; lowest on this split: `{g.best_model}` ({_g(g.best_rms, 3)} {unit})"
+            out.append(line)
+        out.append("")
+    if result.not_fitted:
+        out += [f"**Not fitted:** {len(result.not_fitted)} item(s): " + "; ".join(result.not_fitted) + ".", ""]
+    else:
+        out += ["**Not fitted:** nothing; every term and every evaluation split was fitted.", ""]
+    return out
+
+
+def gain_table(result: FitResult) -> str:
+    """Per split that ran and per triad: RMS over x, y, z of raw, polynomial and exported model, with gains."""
+    h = headline(result)
+    header = ["split", "triad", "raw", "polynomial", h.exported, "gain over raw (%)", "gain over polynomial (%)"]
+    rows = []
+    for split in result.evaluation:
+        if split.skipped or "raw" not in split.samples:
+            continue
+        for triad in TRIAD_TITLES:
+            raw = triad_rms(split, "raw", triad)
+            poly = triad_rms(split, "polynomial", triad)
+            exp = triad_rms(split, h.exported, triad) if h.exported in split.samples else poly
+            rows.append([split.name, f"{triad} ({UNITS[triad]})", _g(raw, 3), _g(poly, 3), _g(exp, 3),
+                         _pct(gain_pct(exp, raw)), _pct(gain_pct(exp, poly))])
+    return _table(header, rows) if rows else "(no evaluation)"
+
+
 def summary_markdown(result: FitResult) -> str:
-    """The whole summary: data, what could not be fitted, coefficients, evaluation tables."""
+    """The whole summary: the headline, data, what could not be fitted, coefficients, evaluation tables."""
     d = result.data_summary
     rbf_name = f"rbf_{result.options.rbf_export}" if result.options.rbf_export else ""
-    out = ["# Calibration fit", ""]
+    out = ["# Calibration fit", ""] + headline_lines(result)
+    if result.evaluation:
+        out += ["## Held-out error at a glance (RMS of sample errors over x, y, z)", "", gain_table(result), ""]
     src = result.provenance.get("source", "data frame")
     out += [f"Data: {src} — {d['rows']:,} rows, {d['records']} records in {len(d['temperature_steps'])} temperature "
             f"steps, orientations {' '.join(d['orientations'])}, IMU temperature "

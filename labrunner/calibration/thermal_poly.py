@@ -50,6 +50,9 @@ class TriadPoly:
     notes: list[str] = field(default_factory=list)
     residual_rms: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))  # record-mean residuals
     cv_scores: dict[int, float] = field(default_factory=dict)  # order -> CV mean-square error, if chosen by CV
+    # (3, 4(order+1), 4(order+1)): covariance of each channel's `coefficients()`, nan where unknown; for the
+    # ±1 sigma band of a fitted term (figures). Not in the model JSON: compensation does not need it.
+    coef_cov: np.ndarray | None = field(default=None, repr=False)
 
     def powers(self, temp_c: np.ndarray) -> np.ndarray:
         tau = np.asarray(temp_c, dtype=float) - self.t_ref_c
@@ -129,6 +132,7 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0) -
     conv = np.tile(t_scale ** -np.arange(order + 1.0), 4)
     coef = np.where(np.isfinite(fit.coef), fit.coef, 0.0).T * conv  # (3, p)
     std = fit.std.T * conv
+    coef_cov = fit.cov * conv[None, :, None] * conv[None, None, :]
     ident = fit.identifiable.reshape(4, order + 1)
     bias, scale = _unpack(coef, order)
     bias_std, scale_std = _unpack(std, order)
@@ -147,7 +151,7 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0) -
         triad=triad, order=order, t_ref_c=t_ref_c, bias=bias, scale=scale, bias_std=bias_std, scale_std=scale_std,
         t_min_c=float(temp.min()), t_max_c=float(temp.max()), method="joint", fitted=fitted, not_fitted=not_fitted,
         notes=notes,
-        residual_rms=rms,
+        residual_rms=rms, coef_cov=coef_cov,
     )
 
 
@@ -174,6 +178,7 @@ def fit_two_stage(steps_cal: list[StepCalibration], order: int, t_ref_c: float =
     bias_std = np.full((3, m), np.nan)
     scale_std = np.full((3, 3, m), np.nan)
     fitted = np.zeros((3, 4), dtype=bool)
+    coef_cov = np.full((3, 4 * m, 4 * m), np.nan)  # terms are fitted separately: only the diagonal blocks
     conv = t_scale ** -np.arange(float(m))
     for c in range(3):
         for b in range(4):
@@ -192,6 +197,7 @@ def fit_two_stage(steps_cal: list[StepCalibration], order: int, t_ref_c: float =
                     chi2 = float(np.sum((vals[ok, c, b] - x @ coef) ** 2 / var)) / dof
                     cov *= max(1.0, chi2)
                 sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+                coef_cov[c, b * m:(b + 1) * m, b * m:(b + 1) * m] = cov * np.outer(conv, conv)
             fitted[c, b] = True
             target = bias[c] if b == 0 else scale[c, b - 1]
             target[:] = coef * conv
@@ -201,7 +207,7 @@ def fit_two_stage(steps_cal: list[StepCalibration], order: int, t_ref_c: float =
     hi = float(temps.max()) if t_max_c is None else t_max_c
     return TriadPoly(triad=triad, order=order, t_ref_c=t_ref_c, bias=bias, scale=scale, bias_std=bias_std,
                      scale_std=scale_std, t_min_c=lo, t_max_c=hi, method="two_stage", fitted=fitted,
-                     not_fitted=not_fitted)
+                     not_fitted=not_fitted, coef_cov=coef_cov)
 
 
 def record_prediction(model: TriadPoly, records: Records) -> np.ndarray:

@@ -16,6 +16,12 @@ def test_quick_procedure_end_to_end_and_export(tmp_path):
     db = tmp_path / "quick.db"
     proc = cli("run", ROOT / "procedures" / "quick.yaml", "--sim", "--db", db, "--quiet", check=0)
     assert "done. 192/192 steps recorded" in proc.stderr
+    # The end-of-run fit leaves the paper's figures next to the models, and its summary starts with the headline.
+    fit_dir = next((tmp_path / "quick_fit").glob("**/imu_calibration.h")).parent
+    figures = {p.name for p in fit_dir.glob("*.png") if p.read_bytes()[:4] == b"\x89PNG"}
+    assert {"thermal_accel_bias.png", "thermal_gyro_scale.png", "heldout_error_accel.png", "static_norm_gyro.png",
+            "allan_deviation.png"} <= figures
+    assert "**Exported** to the C header" in proc.stdout and "`static_norm_accel.png`" in proc.stdout
     with Store.open_existing(db) as store:
         cid = store.resolve(None)
         steps = store.steps_frame(cid)
