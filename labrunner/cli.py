@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
+import os
+import re
 import sys
-from collections.abc import Sequence
+import textwrap
+from collections.abc import Iterator, Sequence
 
 from labrunner import __version__
 from labrunner.errors import UserError
@@ -23,8 +27,65 @@ COMMAND_MODULES = (
 )
 
 
+# A reader that closes the output early (`labrunner export DB --csv - | head`) ends the command quietly
+# with the status a Unix tool killed by SIGPIPE reports (128 + 13), so `set -o pipefail` scripts see
+# a cut-short output as they do for `cat` or `grep`. SIGPIPE itself stays ignored (Python's default):
+# dying on it in the middle of a campaign would skip the safe stop.
+EXIT_BROKEN_PIPE = 141
+EXIT_BUG = 1  # "failed", as for a run that failed
+
+log = logging.getLogger(__name__)
+
+EPILOG = """\
+examples:
+  labrunner check quick                              # the plan of the shipped quick procedure
+  labrunner run quick --sim --db quick.db            # a dry run against the simulated lab
+  labrunner status quick.db
+  labrunner fit quick.db --out fit/ --json fit.json
+
+exit codes: 0 done, 3 paused, 4 aborted (lab in safe state), 1 failed, 2 bad input, 141 output closed
+early (e.g. by `| head`). `labrunner COMMAND --help` explains each command, with an example."""
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Wraps prose paragraphs to the terminal but keeps indented blocks (the examples) as written,
+    and shows every meaningful default: "(default: ...)" unless the help already says it."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        paragraphs = re.split(r"\n\s*\n", text.strip("\n"))
+        out = []
+        for para in paragraphs:
+            if "\n " in para or para.startswith(" "):
+                out.append("\n".join(indent + line for line in para.splitlines()))
+            else:
+                out.append(textwrap.fill(" ".join(para.split()), width, initial_indent=indent,
+                                         subsequent_indent=indent))
+        return "\n\n".join(out)
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        # A flag (no value: store_true, -v counts) has nothing to show; 0 is a default worth showing.
+        if "default" in text or action.required or action.nargs == 0 or action.default is None \
+                or action.default is argparse.SUPPRESS:
+            return text
+        if action.option_strings or action.nargs in ("?", "*"):
+            return f"{text} (default: %(default)s)"
+        return text
+
+
+def subparsers(parser: argparse.ArgumentParser) -> Iterator[tuple[str, argparse.ArgumentParser]]:
+    """Every sub-command's parser, depth first, named as typed (`run`, `sim`, `sim serve`)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                full = f"{parser.prog.removeprefix('labrunner').strip()} {name}".strip()
+                yield full, sub
+                yield from subparsers(sub)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="labrunner", description=__doc__)
+    parser = argparse.ArgumentParser(prog="labrunner", description=__doc__, epilog=EPILOG,
+                                     formatter_class=HelpFormatter)
     parser.add_argument("--version", action="version", version=f"labrunner {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more on stderr: -v INFO, -vv DEBUG (wire traffic)")
@@ -39,6 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
                 continue
             raise
         module.register(sub)
+    for _, p in subparsers(parser):  # one look for every command, registered by whichever module
+        p.formatter_class = HelpFormatter
     return parser
 
 
@@ -50,20 +113,59 @@ def log_level(args: argparse.Namespace) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line; returns the exit code (README, "Commands"). Never raises but SystemExit."""
+    try:
+        try:
+            return _main(argv)
+        finally:
+            sys.stdout.flush()  # a closed pipe shows here, not as a message at interpreter exit
+    except BrokenPipeError:
+        # The reader is gone: say nothing more, and let nothing flush into the dead pipe later.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                os.dup2(devnull, stream.fileno())
+            except (OSError, ValueError):  # a stream replaced by one without a file descriptor
+                pass
+        return EXIT_BROKEN_PIPE
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     configure(log_level(args))
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    command = f"labrunner {args.command}"
     try:
         return int(args.func(args) or 0)
     except UserError as exc:
-        print(f"labrunner {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{command}: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print(f"labrunner {args.command}: interrupted", file=sys.stderr)
+        print(f"{command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        raise
+    except OSError as exc:
+        if exc.filename is None or exc.strerror is None:
+            return _bug(command, exc)
+        # A path the user gave that cannot be read or written (a directory, a missing folder, no
+        # permission): bad input, named.
+        log.debug("%s: %s", command, exc, exc_info=True)
+        where = f"{exc.filename} -> {exc.filename2}" if exc.filename2 else str(exc.filename)
+        print(f"{command}: error: {where}: {exc.strerror[:1].lower()}{exc.strerror[1:]}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # the last line of defence: one line, the traceback at DEBUG
+        return _bug(command, exc)
+
+
+def _bug(command: str, exc: BaseException) -> int:
+    log.debug("%s: unexpected error", command, exc_info=exc)
+    print(f"{command}: error: {type(exc).__name__}: {exc}; this is a bug: please report it with "
+          "`-v --log-level DEBUG` output", file=sys.stderr)
+    return EXIT_BUG
 
 
 if __name__ == "__main__":

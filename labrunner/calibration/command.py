@@ -25,22 +25,31 @@ def register(subparsers: Any) -> None:
         "fit", help="fit thermal calibration models (polynomial, RBF network) to a campaign",
         description="Fit the six-position calibration per temperature step, the thermal polynomial and the RBF "
                     "networks to a campaign (CSV or labrunner database), evaluate them on held-out data and "
-                    "write the models (JSON, C header).")
-    p.add_argument("data", help="campaign CSV or labrunner SQLite database")
-    p.add_argument("--campaign", type=int, default=None, help="campaign id within a database holding several")
-    p.add_argument("--json", metavar="OUT", help="write models, evaluation and provenance as JSON ('-' for stdout)")
+                    "write the models (JSON, C header). A summary (markdown tables) goes to stdout; with a "
+                    "database the fit is stored in it too. docs/calibration.md explains the models.",
+        epilog="""\
+examples:
+  labrunner fit quick.db --out fit/ --json fit.json         # models, C header and tables in fit/
+  labrunner fit quick.csv --order cv --rbf hybrid          # polynomial order by cross-validation
+  labrunner fit quick.db --json - --quiet | jq .evaluation  # the JSON alone, on stdout""")
+    p.add_argument("data", metavar="DATA", help="campaign CSV or labrunner database (DB)")
+    p.add_argument("--campaign", type=int, default=None, metavar="N",
+                   help="campaign id in a database holding several (default: the latest)")
+    p.add_argument("--json", metavar="FILE", help="write models, evaluation and provenance as JSON ('-' for stdout)")
     p.add_argument("--out", metavar="DIR", help="write model JSON files, the C header and evaluation tables here")
-    p.add_argument("--order", default="3", help="polynomial order, or 'cv' to choose it by cross-validation "
-                   "(default 3)")
+    p.add_argument("--order", default="3", metavar="N",
+                   help="polynomial order, or 'cv' to choose it by cross-validation")
     p.add_argument("--poly-method", choices=("joint", "two_stage"), default="joint",
-                   help="joint one-stage fit (default) or the paper's two-stage fit")
-    p.add_argument("--rbf", default=",".join(VARIANTS),
-                   help=f"RBF variants to train, comma-separated from {', '.join(VARIANTS)} (default all)")
-    p.add_argument("--export-rbf", default=None, help="RBF variant exported to the model files (default hybrid, "
-                   "else the first trained)")
-    p.add_argument("--splits", default=",".join(SPLITS), help="evaluation splits, comma-separated (default all)")
+                   help="joint one-stage fit or the paper's two-stage fit")
+    p.add_argument("--rbf", default=",".join(VARIANTS), metavar="NAMES",
+                   help=f"RBF variants to train, comma-separated from {', '.join(VARIANTS)}")
+    p.add_argument("--export-rbf", default=None, metavar="NAME",
+                   help="RBF variant exported to the model files (default: hybrid if trained, else the first "
+                        "trained)")
+    p.add_argument("--splits", default=",".join(SPLITS), metavar="NAMES",
+                   help=f"evaluation splits, comma-separated (default: all: {', '.join(SPLITS)})")
     p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random held-out split")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random held-out split")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.add_argument("--no-store", action="store_true",
                    help="with a database: do not store this fit in it (stored by default, with its provenance)")

@@ -15,18 +15,33 @@ from labrunner.commands.progress import ProgressBar
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    run = sub.add_parser("run", help="run a procedure (on the lab, or --sim for a dry run)",
-                         description="Run a YAML procedure as a new campaign stored in --db.")
-    run.add_argument("procedure", type=Path, help="procedure YAML (e.g. procedures/quick.yaml)")
-    run.add_argument("--db", type=Path, required=True, help="SQLite database for the campaign (created if new)")
+    run = sub.add_parser(
+        "run", help="run a procedure (on the lab, or --sim for a dry run)",
+        description="Run a procedure as a new campaign: ramp and soak the chamber, spin the table, record the "
+                    "IMU, step by step, storing every sample and event in the database; fit the calibration "
+                    "models at the end. A progress bar and an ETA go to stderr, the fit's summary to stdout.\n\n"
+                    "Ctrl-C pauses at the next safe point; a second Ctrl-C, SIGTERM or `labrunner abort DB` "
+                    "brings the lab to its safe state. Either way `labrunner resume DB` continues.\n\n"
+                    "Exit codes: 0 done, 3 paused, 4 aborted (lab in safe state), 1 failed, 2 bad input.",
+        epilog="""\
+examples:
+  labrunner run quick --sim --db quick.db                   # dry run of the shipped quick procedure
+  labrunner run quick --sim --faults 5 --db night.db        # rehearse a bad night: 5 injected faults
+  labrunner run procedures/paper_campaign.yaml --lab lab.yaml --db c1.db   # on the real instruments""")
+    run.add_argument("procedure", type=Path, metavar="PROCEDURE",
+                     help="procedure YAML, or the name of a shipped one (quick, paper_campaign)")
+    run.add_argument("--db", type=Path, required=True, metavar="DB",
+                     help="SQLite database for the campaign (created if new; may hold other campaigns)")
     where = run.add_mutually_exclusive_group(required=True)
     where.add_argument("--sim", action="store_true", help="dry run against the simulated lab (virtual clock)")
     where.add_argument("--lab", type=Path, metavar="LAB.yaml", help="lab configuration naming the instruments")
-    run.add_argument("--sim-config", type=Path, help="sim configuration YAML (seed, plants, IMU model, faults)")
-    run.add_argument("--seed", type=int, default=None, help="seed of the simulated lab (dry runs)")
+    run.add_argument("--sim-config", type=Path, metavar="SIM.yaml",
+                     help="dry runs: sim configuration (seed, plants, IMU model, faults)")
+    run.add_argument("--seed", type=int, default=None, metavar="N",
+                     help="dry runs: seed of the simulated lab (default: the sim configuration's)")
     run.add_argument("--faults", type=int, default=0, metavar="N",
                      help="dry runs: inject N seeded random instrument faults across the campaign")
-    run.add_argument("--fit-out", type=Path, default=None,
+    run.add_argument("--fit-out", type=Path, default=None, metavar="DIR",
                      help="directory for the fitted models (default: next to the database, <db>_fit/campaign-<id>/)")
     run.add_argument("--force", action="store_true", help="let the end-of-run fit write into a non-empty --fit-out")
     run.add_argument("--no-auto-resume", action="store_true",
@@ -35,32 +50,72 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
 
-    res = sub.add_parser("resume", help="continue a paused, killed or aborted campaign from its first missing step")
-    res.add_argument("db", type=Path)
-    res.add_argument("--campaign", type=int, default=None, help="campaign id (default: the latest in the file)")
+    res = sub.add_parser(
+        "resume", help="continue a paused, killed or aborted campaign from its first missing step",
+        description="Continue a campaign that was paused, aborted, or killed (kill -9, power loss) from its first "
+                    "missing step, with the procedure and configuration stored in the database. Complete steps "
+                    "are never recorded again. Exit codes as for `run`.",
+        epilog="""\
+examples:
+  labrunner resume quick.db
+  labrunner resume c1.db --campaign 2 --lab lab.yaml        # the second campaign, on another lab set-up""")
+    res.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
+    res.add_argument("--campaign", type=int, default=None, metavar="N",
+                     help="campaign id (default: the latest in the database)")
     res.add_argument("--lab", type=Path, metavar="LAB.yaml", help="lab configuration (default: the one stored)")
-    res.add_argument("--fit-out", type=Path, default=None)
+    res.add_argument("--fit-out", type=Path, default=None, metavar="DIR",
+                     help="directory for the fitted models (default: next to the database, <db>_fit/campaign-<id>/)")
     res.add_argument("--force", action="store_true", help="let the end-of-run fit write into a non-empty --fit-out")
-    res.add_argument("--quiet", action="store_true")
+    res.add_argument("--quiet", action="store_true", help="no progress bar")
     res.set_defaults(func=cmd_resume)
 
-    st = sub.add_parser("status", help="progress of a campaign (also while it runs in another terminal)")
-    st.add_argument("db", type=Path)
-    st.add_argument("--campaign", type=int, default=None)
-    st.add_argument("--events", type=int, default=8, help="how many recent events to show")
-    st.add_argument("--watch", type=float, default=None, metavar="S", help="refresh every S seconds")
+    st = sub.add_parser(
+        "status", help="progress of a campaign (also while it runs in another terminal)",
+        description="Show a campaign's status, state, progress, lab time, next step, ETA, faults and recent "
+                    "events. Safe while the campaign runs in another process.",
+        epilog="""\
+examples:
+  labrunner status quick.db
+  labrunner status quick.db --watch 5 --events 15           # refresh every 5 s; Ctrl-C to leave""")
+    st.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
+    st.add_argument("--campaign", type=int, default=None, metavar="N",
+                    help="campaign id (default: the latest in the database)")
+    st.add_argument("--events", type=int, default=8, metavar="N", help="how many recent events to show")
+    st.add_argument("--watch", type=float, default=None, metavar="S",
+                    help="refresh every S seconds until Ctrl-C (default: print once)")
     st.set_defaults(func=cmd_status)
 
-    ab = sub.add_parser("abort", help="bring the lab to its safe state and end a campaign")
-    ab.add_argument("db", type=Path)
-    ab.add_argument("--campaign", type=int, default=None)
-    ab.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the running process")
+    ab = sub.add_parser(
+        "abort", help="bring the lab to its safe state and end a campaign",
+        description="Abort a campaign: the process running it (found through the database) stops the table and "
+                    "takes the chamber to the remount temperature, its safe state; when no process runs it, this "
+                    "command does that itself on a real lab. The campaign stays resumable with `labrunner resume "
+                    "DB`. Exit code 0 when it ended safely (or already had), 1 when the running process did not "
+                    "answer within --wait.",
+        epilog="""\
+examples:
+  labrunner abort quick.db
+  labrunner abort c1.db --campaign 2 --wait 300""")
+    ab.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
+    ab.add_argument("--campaign", type=int, default=None, metavar="N",
+                    help="campaign id (default: the latest in the database)")
+    ab.add_argument("--wait", type=float, default=60.0, metavar="S",
+                    help="seconds to wait for the running process to reach the safe state")
     ab.set_defaults(func=cmd_abort)
 
-    ex = sub.add_parser("export", help="write a campaign as campaign CSV")
-    ex.add_argument("db", type=Path)
-    ex.add_argument("--csv", type=Path, required=True, help="output CSV file ('-' for stdout)")
-    ex.add_argument("--campaign", type=int, default=None)
+    ex = sub.add_parser(
+        "export", help="write a campaign as campaign CSV",
+        description="Write a campaign's recorded samples in the campaign CSV format (t_s, run, orientation, "
+                    "chamber_c, imu_temp_c, table_rate_dps, ax_g ... gz_dps), the input of `fit`, `diagnose` "
+                    "and `check --csv`.",
+        epilog="""\
+examples:
+  labrunner export quick.db --csv quick.csv
+  labrunner export quick.db --csv - --with-monitor | head   # to stdout, with the ramp and soak rows""")
+    ex.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
+    ex.add_argument("--csv", type=Path, required=True, metavar="FILE", help="output CSV file ('-' for stdout)")
+    ex.add_argument("--campaign", type=int, default=None, metavar="N",
+                    help="campaign id (default: the latest in the database)")
     ex.add_argument("--force", action="store_true", help="overwrite an existing CSV file")
     ex.add_argument("--with-monitor", action="store_true",
                     help="include the 1 s monitor rows logged while ramping and soaking")

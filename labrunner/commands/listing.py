@@ -18,8 +18,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("list", help="the campaigns in a store: id, name, status, progress, mode, process",
                        description="List the campaigns of a labrunner store: id, name, status, steps recorded of "
                                    "planned, samples, mode (sim or lab), the process running it and the age of "
-                                   "its last heartbeat.")
-    p.add_argument("db", type=Path, help="labrunner store")
+                                   "its last heartbeat. The ids are what --campaign N takes.",
+                       epilog="""\
+examples:
+  labrunner list c1.db
+  labrunner status c1.db --campaign 2                       # then one of them in detail""")
+    p.add_argument("db", type=Path, metavar="DB", help="labrunner store")
     p.set_defaults(func=cmd_list)
 
 

@@ -15,27 +15,45 @@ from labrunner.output_paths import check_output
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    sim = sub.add_parser("sim", help="simulated instruments")
+    rehearsal = """\
+examples:
+  labrunner sim serve --speed 600 --lab-config lab.yaml &   # prints the ports, writes a matching lab.yaml
+  labrunner run quick --lab lab.yaml --db rehearsal.db      # the sequencer against it, 600x wall time"""
+    sim = sub.add_parser(
+        "sim", help="simulated instruments",
+        description="The simulated lab on its own: `labrunner sim serve` starts the chamber, rate table and IMU "
+                    "as servers speaking the real protocols, to rehearse a lab configuration from another "
+                    "process. (A dry run, `labrunner run --sim`, starts its own.)",
+        epilog=rehearsal)
     sim_sub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND")
     serve = sim_sub.add_parser(
         "serve", help="serve the simulated chamber, rate table and IMU on loopback",
         description="Start the three simulated instruments as servers (Modbus TCP/RTU chamber, serial-over-TCP "
-                    "or pty rate table and IMU) so a lab configuration can be rehearsed from another process.")
-    serve.add_argument("--speed", type=float, default=1.0, help="simulated time runs N times faster than wall time")
-    serve.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback only)")
-    serve.add_argument("--chamber-port", type=int, default=0, help="Modbus port (0: any free port)")
-    serve.add_argument("--table-port", type=int, default=0)
-    serve.add_argument("--imu-port", type=int, default=0)
+                    "or pty rate table and IMU) so a lab configuration can be rehearsed from another process. "
+                    "Prints the ports and a `ready` JSON line; runs until Ctrl-C, SIGTERM or --duration.",
+        epilog=rehearsal)
+    serve.add_argument("--speed", type=float, default=1.0, metavar="N",
+                       help="simulated time runs N times faster than wall time")
+    serve.add_argument("--host", default="127.0.0.1", metavar="HOST",
+                       help="address to listen on")
+    serve.add_argument("--chamber-port", type=int, default=0, metavar="PORT", help="Modbus port (0: any free port)")
+    serve.add_argument("--table-port", type=int, default=0, metavar="PORT",
+                       help="rate table's TCP port with --link tcp (0: any free port)")
+    serve.add_argument("--imu-port", type=int, default=0, metavar="PORT",
+                       help="IMU's TCP port with --link tcp (0: any free port)")
     serve.add_argument("--chamber-transport", choices=("tcp", "rtu"), default="tcp",
                        help="Modbus TCP, or RTU framing over a TCP socket (socket://)")
-    serve.add_argument("--profile", default="watlow_f4", help="chamber register-map profile")
+    serve.add_argument("--profile", default="watlow_f4", metavar="NAME",
+                       help="chamber register-map profile (watlow_f4, watlow_f4t)")
     serve.add_argument("--link", choices=("tcp", "pty"), default="tcp",
                        help="serial lines as socket:// ports or as pseudo-terminals")
-    serve.add_argument("--config", type=Path,
-                       help="sim configuration (YAML): seed, plant parameters, IMU model, faults")
-    serve.add_argument("--lab-config", type=Path, help="also write a lab configuration (YAML) pointing at these sims")
+    serve.add_argument("--config", type=Path, metavar="SIM.yaml",
+                       help="sim configuration: seed, plant parameters, IMU model, faults")
+    serve.add_argument("--lab-config", type=Path, metavar="LAB.yaml",
+                       help="also write a lab configuration pointing at these sims")
     serve.add_argument("--force", action="store_true", help="overwrite an existing --lab-config file")
-    serve.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    serve.add_argument("--duration", type=float, default=None, metavar="S",
+                       help="stop after S wall seconds (default: run until Ctrl-C or SIGTERM)")
     serve.set_defaults(func=serve_command)
     sim.set_defaults(func=lambda args: (sim.print_help(), 2)[1])
 

@@ -11,6 +11,7 @@ from labrunner import api
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
 
+from .diagnose import TooLittleData
 from .terms import CAUSE_ORDER
 
 
@@ -19,16 +20,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "diagnose", help="find what the simulated IMU model gets wrong in measured data, and extend it",
         description="Fit the simulator's IMU error model to a measured campaign (CSV or store), test every "
                     "candidate cause on held-out time blocks, name the ones the data supports, write the "
-                    "extended model for the sims and the held-out gain.")
-    p.add_argument("data", help="campaign CSV or labrunner SQLite store")
-    p.add_argument("--json", required=True, dest="json_out", metavar="OUT", help="write the diagnosis JSON here")
+                    "extended model for the sims and the held-out gain. The verdict and the findings go to "
+                    "stdout. It needs a campaign of some length (several held-out stretches of 30 s or more); "
+                    "docs/diagnosis.md explains the method and the causes.",
+        epilog="""\
+examples:
+  labrunner diagnose lab.csv --json diagnosis.json --report diagnosis/
+  labrunner diagnose quick.db --json d.json --causes thermal_lag,hysteresis""")
+    p.add_argument("data", metavar="DATA", help="campaign CSV or labrunner database (DB)")
+    p.add_argument("--json", required=True, dest="json_out", metavar="FILE", help="write the diagnosis JSON here")
     p.add_argument("--report", metavar="DIR", help="also write plots, residuals.csv and summary.md here")
-    p.add_argument("--model", metavar="PATH",
-                   help="where to write the extended IMU model (default: OUT with .imu_model.json)")
-    p.add_argument("--campaign", type=int, help="campaign id inside a store holding several")
-    p.add_argument("--causes", help="comma-separated subset of causes to test (default: all): "
-                                    + ",".join(CAUSE_ORDER))
-    p.add_argument("--min-evidence", type=float, default=10.0,
+    p.add_argument("--model", metavar="FILE",
+                   help="where to write the extended IMU model (default: the --json FILE with .imu_model.json)")
+    p.add_argument("--campaign", type=int, metavar="N",
+                   help="campaign id in a database holding several (default: the latest)")
+    p.add_argument("--causes", metavar="NAMES", help="comma-separated subset of causes to test (default: all: "
+                                                     + ", ".join(CAUSE_ORDER) + ")")
+    p.add_argument("--min-evidence", type=float, default=10.0, metavar="SCORE",
                    help="held-out evidence a cause must exceed (2 x log-likelihood, after the parameter charge)")
     p.add_argument("--force", action="store_true",
                    help="overwrite existing --json and --model files and write into a non-empty --report directory")
@@ -46,7 +54,10 @@ def handler(args: argparse.Namespace) -> int:
         check_output(args.report, inputs=[args.data], force=args.force, directory=True, option="--report")
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip()) if args.causes else None
     data = api.load_data(args.data, campaign=args.campaign, include_monitor=True)  # ramps and soaks too
-    result = api.diagnose(data, min_evidence=args.min_evidence, causes=causes)
+    try:
+        result = api.diagnose(data, min_evidence=args.min_evidence, causes=causes)
+    except TooLittleData as exc:  # the analysis sees rows, not files: name the data here
+        raise UserError(f"{args.data}: {exc}") from None
 
     result.model.save(model_out)
     result.model_path = str(model_out)
