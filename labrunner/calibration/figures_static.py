@@ -156,7 +156,7 @@ def allan_curves(result: FitResult) -> AllanCurves:
 
 def allan_figure(curves: AllanCurves) -> Figure:
     """Allan deviation per channel, log-log, with the white-noise (−1/2) and random-walk (+1/2) slopes."""
-    fig, axes = new_figure(1, 2, (11, 5.2), top=0.7, wspace=0.28)
+    fig, axes = new_figure(1, 2, (11, 5.2), left=1.0, top=0.7, wspace=0.3)
     tau = curves.taus_s
     nwhite = curves.white_noise()
     for ax, triad in zip(axes[0], ("accel", "gyro")):
