@@ -43,8 +43,8 @@ examples:
   labrunner status quick.db
   labrunner fit quick.db --out fit/ --json fit.json
 
-exit codes: 0 done, 3 paused, 4 aborted (lab in safe state), 1 failed, 2 bad input, 141 output closed
-early (e.g. by `| head`). `labrunner COMMAND --help` explains each command, with an example."""
+exit codes: 0 done, 3 paused, 4 aborted (lab in safe state), 1 failed, 2 bad input, 130 interrupted,
+141 output closed early (e.g. by `| head`). `labrunner COMMAND --help` explains each command, with an example."""
 
 
 class HelpFormatter(argparse.HelpFormatter):
