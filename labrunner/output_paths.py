@@ -35,7 +35,16 @@ class _Protected:
     """A path no output may take, and how a refusal names it."""
 
     path: Path
-    what: str
+    given: str  # the input as given
+    companion: bool = False
+
+    @property
+    def what(self) -> str:
+        # The header is read only to word a refusal: closing a descriptor of a file drops every POSIX
+        # lock this process holds on it, SQLite's included, and a store open here (a run checking its
+        # fit directory) would then let another process delete the WAL it is writing.
+        kind = f"the store {self.given}" if _is_sqlite(Path(self.given)) else f"the input {self.given}"
+        return f"a companion file of {kind}" if self.companion else kind
 
 
 def _is_sqlite(path: Path) -> bool:
@@ -52,12 +61,11 @@ def _protected(inputs: Iterable[str | Path | None]) -> list[_Protected]:
         if given is None or str(given) == STDOUT:
             continue
         path = Path(given)
-        what = f"the store {given}" if _is_sqlite(path) else f"the input {given}"
         # Both the path as given and as resolved: SQLite names its companions after the path it was
         # opened with, and newer versions after the symlink's target.
         for base in dict.fromkeys((Path(os.path.abspath(path)), path.resolve())):
-            out.append(_Protected(base, what))
-            out += [_Protected(Path(f"{base}{suffix}"), f"a companion file of {what}") for suffix in SQLITE_COMPANIONS]
+            out.append(_Protected(base, str(given)))
+            out += [_Protected(Path(f"{base}{suffix}"), str(given), companion=True) for suffix in SQLITE_COMPANIONS]
     return out
 
 
