@@ -337,9 +337,10 @@ def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path
         nxt = store.next_step(cid)
         orientation = procedure.steps()[nxt].orientation if nxt is not None else None
         if info.mode == "sim":
-            # The simulated lab starts again a minute after the campaign's last recorded moment
-            # (after a kill the heartbeat's clock_last may lag behind the last event).
-            last = max(info.clock_last, info.clock_t0 + store.last_time(cid))
+            # The simulated lab starts again a minute after the campaign's last stored moment: after a
+            # kill the heartbeat's clock_last and the last event may both lag behind the monitor
+            # stretches stored while soaking (a resumed session must not overlap them).
+            last = max(info.clock_last, info.clock_t0 + store.last_moment(cid))
             the_lab = _sim_lab(procedure, info.sim_config or {}, last + 60.0, orientation)
         else:
             config = _lab_config(lab) if lab is not None else lab_config_from_dict(info.lab_config,

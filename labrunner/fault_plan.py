@@ -11,13 +11,19 @@ logged by the sequencer itself.
 
 The kinds are `labrunner.fault_kinds.FaultKind`; the injector reaches the simulated lab
 only through its `FaultTarget` interface (`apply_fault`, `clear_fault`).
+
+A plan's faults fire once per campaign, not once per session: every injection is an event with
+the fault in its detail, and a resumed campaign skips the faults its store says fired already
+(a fault anchored to the step being resumed fired before the kill, and must not fire again).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import random
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -65,6 +71,42 @@ def _at_step(f: Fault) -> int:
     return f.at_step
 
 
+def _key(spec: dict[str, Any]) -> tuple[Any, ...]:
+    """What identifies a planned fault (its plan entry), as its injection event's detail records it."""
+    f = asdict(Fault(**spec))
+    return tuple(sorted(f.items()))
+
+
+def not_fired(faults: Iterable[Fault], fired: Iterable[dict[str, Any]]) -> list[Fault]:
+    """The faults of a plan that have not fired yet, given the details of the injection events stored.
+
+    A plan may hold the same fault twice: each injection accounts for one of them."""
+    seen = Counter(_key(d) for d in fired)
+    ahead = []
+    for f in faults:
+        k = _key(asdict(f))
+        if seen[k] > 0:
+            seen[k] -= 1
+        else:
+            ahead.append(f)
+    return ahead
+
+
+def fired_faults(store: Any, campaign_id: int) -> list[dict[str, Any]]:
+    """The plan entries of the faults a campaign's store logged as injected (`injected` events)."""
+    ev = store.events_frame(campaign_id)
+    out = []
+    for detail in ev.loc[ev.kind == "injected", "detail"]:
+        try:
+            d = json.loads(detail) if isinstance(detail, str) else None
+            if isinstance(d, dict):
+                _key(d)  # a detail that is not a fault is not one of the plan's
+                out.append(d)
+        except (ValueError, TypeError):
+            continue
+    return out
+
+
 def random_fault_plan(procedure: Any, n: int, seed: int) -> list[dict[str, Any]]:
     """N faults of random kinds at random moments across the procedure's steps (seeded)."""
     rng = random.Random(f"faults-{seed}-{n}")
@@ -107,13 +149,14 @@ class FaultInjector:
         items = list(spec.get("schedule") or []) + list(spec.get("random") or [])
         faults = [Fault(**f) for f in items]
         t_now, k_now = runner.t, runner.k
-        # A resumed campaign replays only what is still ahead of it.
+        # A resumed campaign replays only what is still ahead of it and has not fired in an earlier session.
         faults = [f for f in faults if (f.at_s is not None and f.at_s >= t_now)
                   or (f.at_step is not None and k_now is not None and f.at_step >= k_now)]
+        faults = not_fired(faults, fired_faults(runner.store, runner.cid))
 
         def log(kind: str, message: str, detail: dict[str, Any]) -> None:
-            runner.store.event(runner.cid, runner.t, kind, message, state=runner.state, step_idx=runner.k,
-                               detail=detail)
+            # Called on a clock listener: a store failure is left for the sequencer to act on.
+            runner.log_event(kind, message, detail, raise_failure=False)
 
         if lab.sim is None or not isinstance(lab.clock, VirtualClock):
             raise ValueError("a fault plan needs the simulated lab of a dry run (a virtual clock)")

@@ -19,6 +19,15 @@ Pause requests (first Ctrl-C, `labrunner` control table) take effect at the next
 safe point: between polls while ramping or soaking, after a record step is
 committed. Abort requests (second Ctrl-C, `labrunner abort`) bring the lab to its
 safe state: table stopped, chamber to the remount (ambient) temperature.
+
+Whatever fails — an instrument past its retries, the store (disk full, lost
+connection, read-only file), a bug — `run` does not raise: the lab goes to its
+safe state first, and the store is not touched from the moment the sequencer leaves
+for the safe stop until the lab is safe (the events meanwhile wait in
+`runner.journal`). Then the run's end is recorded; a store failure ends the run
+`failed`, and if the store still cannot be written the returned state is `failed`
+with `last_error` saying so in one line (the campaign stays marked running, which
+`labrunner status` and `resume` read as interrupted once the process is gone).
 """
 
 from __future__ import annotations
@@ -42,11 +51,12 @@ from labrunner.runner.control import Control, RunStats, StoreRequests
 from labrunner.runner.fault_log import FaultLog
 from labrunner.runner.fault_policy import Action, AutoResume, FaultPolicy
 from labrunner.runner.interlocks import Interlocks, Readings
+from labrunner.runner.journal import Journal
 from labrunner.runner.monitor import ImuMonitor
 from labrunner.runner.preflight import check_chamber, check_table
 from labrunner.runner.safe_stop import safe_stop
 from labrunner.runner.soak import SoakWindow, soak_timeout
-from labrunner.store import SampleBlock, Store
+from labrunner.store import SampleBlock, Store, StoreError
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +64,7 @@ STATES = ["idle", "preflight", "mounting", "ramping", "soaking", "rate_settling"
           "paused", "safe_stop", "aborted", "failed"]
 ACTIVE = ["preflight", "mounting", "ramping", "soaking", "rate_settling", "recording", "fitting"]
 TERMINAL = {"done", "paused", "aborted", "failed"}
+ABORTABLE = ACTIVE + ["paused", "idle"]
 TRANSITIONS: list[dict[str, Any]] = [
     {"trigger": "start", "source": "idle", "dest": "preflight"},
     {"trigger": "preflight_ok", "source": "preflight", "dest": "mounting"},
@@ -70,7 +81,7 @@ TRANSITIONS: list[dict[str, Any]] = [
     {"trigger": "fitted", "source": "fitting", "dest": "done"},
     {"trigger": "pause", "source": ACTIVE, "dest": "paused"},
     {"trigger": "resume", "source": "paused", "dest": "preflight"},
-    {"trigger": "abort", "source": ACTIVE + ["paused", "idle"], "dest": "safe_stop"},
+    {"trigger": "abort", "source": ABORTABLE, "dest": "safe_stop"},
     {"trigger": "stopped_safely", "source": "safe_stop", "dest": "aborted"},
     {"trigger": "fail", "source": ACTIVE + ["safe_stop", "idle"], "dest": "failed"},
 ]
@@ -134,13 +145,16 @@ class CampaignRunner:
         self.last_error: str | None = None
         self.fit_summary: str | None = None
         self.fit_ok = False
+        self.store_failure: StoreError | None = None  # the store failure that ended the run
+        self.lab_safe = False  # the safe stop (or the park before fitting) reached the safe state
+        self.journal = Journal(store, campaign_id)
         self.requests = StoreRequests(store, campaign_id, self.clock, self.control)
         self._soak_started: float | None = None  # when the current ramp began: the soak's deadline counts from it
         self.interlocks = Interlocks.from_safety(self.p.safety)
         self.policy = FaultPolicy(self.p.faults)
         self.auto_resume = AutoResume(auto_resume_s, max_auto_resumes)
         self.monitor = ImuMonitor(lab.imu, lab.chamber, lambda: self.t, self.p.monitor.average_s)
-        self.fault_log = FaultLog(self.stats, self.event)
+        self.fault_log = FaultLog(self.stats, self.event, self.event_from_thread)
         self.fault_log.attach(lab.chamber, lab.table, lab.imu)
         self.fault_injector: Any = None  # set by labrunner.fault_plan in dry runs with injected faults
         self.machine = Machine(model=self, states=STATES, transitions=TRANSITIONS, initial="idle",
@@ -182,11 +196,21 @@ class CampaignRunner:
 
     def _log_transition(self, event_data: EventData | None = None) -> None:
         src = event_data.transition.source if event_data is not None and event_data.transition else "?"
-        self.store.event(self.cid, self.t, "transition", f"{src} -> {self.state}", state=self.state, step_idx=self.k)
+        self.log_event("transition", f"{src} -> {self.state}")
         self._report()
 
     def event(self, kind: str, message: str, **detail: Any) -> None:
-        self.store.event(self.cid, self.t, kind, message, state=self.state, step_idx=self.k, detail=detail or None)
+        self.log_event(kind, message, detail or None)
+
+    def event_from_thread(self, kind: str, message: str, **detail: Any) -> None:
+        """An event from another thread (the IMU reader): a store failure is left for the sequencer."""
+        self.log_event(kind, message, detail or None, raise_failure=False)
+
+    def log_event(self, kind: str, message: str, detail: dict[str, Any] | None = None, *,
+                  raise_failure: bool = True) -> None:
+        """An event at the current campaign time, state and step (held while the lab is made safe)."""
+        self.journal.write(self.t, kind, message, state=self.state, step_idx=self.k, detail=detail,
+                           raise_failure=raise_failure)
 
     def _report(self) -> None:
         if self.progress:
@@ -200,6 +224,7 @@ class CampaignRunner:
 
     def _check_requests(self, *, allow_pause: bool = True) -> None:
         """At a safe point: act on pause/abort requests (from signals, or from the store)."""
+        self.journal.raise_failure()  # met by another thread meanwhile
         if self.fault_log.retrying:
             self.fault_log.note_recoveries()
         self.requests.poll()
@@ -235,47 +260,105 @@ class CampaignRunner:
     # --- the loop ------------------------------------------------------------------------------
 
     def run(self) -> str:
-        """Run until done, paused, aborted or failed; returns the final state."""
+        """Run until done, paused, aborted or failed; returns the final state. Never raises for a
+        failure of the instruments or the store (see the module's docstring)."""
+        self._guarded(self._begin)
+        while True:
+            if self.state in TERMINAL and not self._leave_terminal():
+                break
+            if self.state not in TERMINAL:
+                self._guarded(getattr(self, f"_do_{self.state}"))
+        return self._finish()
+
+    def _begin(self) -> None:
         self.store.set_status(self.cid, "running", clock_last=self.clock.now(), pid=os.getpid())
         self.event("info", f"campaign {'resumed' if self.k not in (None, 0) else 'started'} at step {self.k}",
                    mode=self.store.campaign(self.cid).mode)
         self.start()
-        while True:
-            if self.state in TERMINAL:
-                if self.state == "paused" and self.control.abort:
-                    self.abort()  # a second Ctrl-C (or labrunner abort) right after the pause took effect
-                    continue
-                if self.state == "paused" and self.auto_resume.due():
-                    assert self.auto_resume.delay_s is not None
-                    self.clock.sleep(self.auto_resume.delay_s)
-                    n = self.auto_resume.take()
-                    self.event("recovery", f"resuming after a fault pause (auto-resume {n})")
-                    self.resume()
-                    continue
-                break
-            handler = getattr(self, f"_do_{self.state}")
+
+    def _leave_terminal(self) -> bool:
+        """At a final state, what still moves the machine: True when it went on."""
+        if self.state != "paused":
+            return False
+        if self.control.abort:
+            self._guarded(self.abort)  # a second Ctrl-C (or labrunner abort) right after the pause took effect
+            return True
+        if self.auto_resume.due():
+            self._guarded(self._auto_resume)
+            return True
+        return False
+
+    def _auto_resume(self) -> None:
+        assert self.auto_resume.delay_s is not None
+        self.clock.sleep(self.auto_resume.delay_s)
+        n = self.auto_resume.take()
+        self.event("recovery", f"resuming after a fault pause (auto-resume {n})")
+        self.resume()
+
+    def _guarded(self, action: Callable[[], object]) -> None:
+        """Run a handler; whatever it raises becomes a decision of the fault policy or a safe stop."""
+        try:
+            action()
+        except _Stop:
+            return
+        except InstrumentError as exc:
             try:
-                handler()
-            except _Stop:
-                continue
-            except LimitError as exc:
-                self._fault(exc, hard=True)
-            except InstrumentError as exc:
-                self._fault(exc)
-            except Exception as exc:  # a bug or an unforeseen failure: leave the lab safe, keep the data
-                self.last_error = f"{type(exc).__name__}: {exc}"
-                log.error("unexpected error in %s: %s", self.state, self.last_error,
-                          exc_info=log.isEnabledFor(logging.DEBUG))
-                self.event("fault", f"unexpected error in {self.state}: {self.last_error}")
-                if self.state in ACTIVE:
-                    self.abort()
-                else:
-                    self.fail()
-        final = self.state
-        self.store.set_status(self.cid, final, clock_last=self.clock.now(), pid=None)
-        self.store.request(self.cid, None)
+                self._fault(exc, hard=isinstance(exc, LimitError))
+            except Exception as during:  # the fault's event or transition met a failing store
+                self._unexpected(during)
+        except Exception as exc:
+            self._unexpected(exc)
+
+    def _unexpected(self, exc: Exception) -> None:
+        """The store failed, or something unforeseen did: bring the lab to its safe state before the store
+        is touched again (the journal holds every event until the lab is safe), keep the data."""
+        self.journal.hold()
+        where = self.state
+        if isinstance(exc, StoreError):
+            self.store_failure = self.store_failure or exc
+            self.last_error = str(exc)
+            log.info("store failed in %s: %s; bringing the lab to its safe state", where, exc)
+            self.event("fault", f"store failed in {where}: {exc}", database=str(exc.path))
+        else:
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            log.error("unexpected error in %s: %s", where, self.last_error, exc_info=log.isEnabledFor(logging.DEBUG))
+            self.event("fault", f"unexpected error in {where}: {self.last_error}")
+        if where == "idle":
+            self.fail()  # nothing was driven yet: there is nothing to make safe
+        elif where in ABORTABLE:
+            self.abort()
+        elif where == "safe_stop":
+            self.fail()
+
+    def _finish(self) -> str:
+        """Record how the run ended: what the journal held during the safe stop, then the status. A store
+        that cannot take it gives `failed` and a `last_error` that says so."""
+        failure = self._record_end()
+        if failure is not None and self.state == "paused":
+            # The pause cannot be recorded: the store failed, so the lab goes to its safe state as for
+            # any store failure, and the run ends failed.
+            self._unexpected(failure)
+            self._guarded(self._do_safe_stop)
+            failure = self._record_end()
         self._report()
-        return final
+        if failure is None:
+            return str(self.state)
+        outcome = "the lab is in its safe state" if self.lab_safe else "the lab is NOT in its safe state"
+        self.last_error = (f"{failure}; {outcome}; the campaign's end ({self.state}) could not be recorded "
+                           "(it shows as interrupted: resume it once the database can be written)")
+        log.info("campaign %d: %s", self.cid, self.last_error)
+        return "failed"
+
+    def _record_end(self) -> StoreError | None:
+        failure = self.journal.flush()
+        if failure is not None:
+            return failure
+        try:
+            self.store.set_status(self.cid, self.state, clock_last=self.clock.now(), pid=None)
+            self.store.request(self.cid, None)
+        except StoreError as exc:
+            return exc
+        return None
 
     def _act(self, action: Action, *, by_fault: bool = True) -> None:
         """Carry out a pause, abort or fail decided by the fault policy."""
@@ -522,6 +605,7 @@ class CampaignRunner:
         try:
             lab.table.stop()
             lab.chamber.set_setpoint(self.p.remount_c)
+            self.lab_safe = True
         except InstrumentError as exc:
             self.event("warning", f"could not park the lab before fitting: {exc}")
         if self.p.fit.run:
@@ -531,6 +615,8 @@ class CampaignRunner:
                 self.fit_summary = fit_and_store(self.store, self.cid, self.p.fit, self.fit_out_dir)
                 self.fit_ok = True
                 self.event("info", "fit stored", out_dir=str(self.fit_out_dir) if self.fit_out_dir else None)
+            except StoreError:
+                raise  # not the fit's failure: the store's, which ends the run (the fit is made again on resume)
             except Exception as exc:  # the data are safe; a fit can be run again with `labrunner fit`
                 log.warning("fit failed: %s", exc, exc_info=log.isEnabledFor(logging.DEBUG))
                 self.event("warning", f"fit failed: {type(exc).__name__}: {exc}")
@@ -547,8 +633,16 @@ class CampaignRunner:
             self.last_error = "; ".join(result.problems)
             self.fail()
             return
+        self.lab_safe = True
         self.event("info", f"lab in safe state: table stopped, chamber to {self.p.remount_c} C")
-        self.stopped_safely()
+        if self.store_failure is not None:
+            self.fail()  # safe, but the campaign cannot go on until the store can be written again
+        else:
+            self.stopped_safely()
+
+    def on_enter_safe_stop(self, *_: Any) -> None:
+        # From here until the lab is safe nothing waits on the store: it may be what failed.
+        self.journal.hold()
 
     def on_enter_paused(self, *_: Any) -> None:
         try:

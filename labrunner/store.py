@@ -12,6 +12,11 @@ A record step is written with its step status and its event in one transaction,
 so after any crash a step is either complete or absent; a partial unique index
 makes a second copy of a step impossible. WAL and synchronous=NORMAL on every
 connection. Readers return pandas frames.
+
+A database that cannot be read or written (disk full, lost connection, read-only
+file) raises `StoreError`, one line naming the database and what SQLite said, so
+the sequencer can tell a store failure from an instrument's and bring the lab to
+its safe state before it touches the store again.
 """
 
 from __future__ import annotations
@@ -48,13 +53,31 @@ from sqlalchemy import (
     update,
 )
 from sqlalchemy.engine import Connection, CursorResult, Engine
-from sqlalchemy.exc import DatabaseError, OperationalError
+from sqlalchemy.exc import DatabaseError, IntegrityError, OperationalError
 
 from labrunner.campaign_csv import COLUMNS
 from labrunner.errors import UserError
 from labrunner.version import __version__
 
 log = logging.getLogger(__name__)
+
+# What a database that cannot be used raises (SQLite: SQLITE_FULL, SQLITE_READONLY, SQLITE_IOERR, ...).
+# IntegrityError is a DatabaseError too but not a failing store: a write the schema refuses (a step
+# stored twice) is the writer's error and stays one.
+_STORE_FAILURES = (OperationalError, DatabaseError, OSError)
+
+
+class StoreError(UserError):
+    """The database could not be read or written; the message names it and the cause."""
+
+    exit_code = 1  # a failed run, not bad input
+
+    def __init__(self, path: Path, doing: str, cause: BaseException) -> None:
+        orig = getattr(cause, "orig", None)  # the DBAPI error, without SQLAlchemy's SQL and parameters
+        self.path = path
+        self.cause = str(orig if orig is not None else cause).strip() or type(cause).__name__
+        super().__init__(f"cannot {doing} the database {path}: {self.cause}")
+
 
 SCHEMA_VERSION = 1
 # Columns `samples_frame(with_steps=True)` adds to the campaign CSV columns.
@@ -269,12 +292,17 @@ class Store:
         if p.exists() and p.stat().st_size > 0:
             store = cls.open_existing(p)
             return store
-        p.parent.mkdir(parents=True, exist_ok=True)
-        engine = cls._engine(p)
-        metadata.create_all(engine)
-        with engine.begin() as conn:
-            conn.execute(insert(meta), [{"key": "schema_version", "value": str(SCHEMA_VERSION)},
-                                        {"key": "created_by", "value": f"labrunner {__version__}"}])
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            engine = cls._engine(p)
+            metadata.create_all(engine)
+            with engine.begin() as conn:
+                conn.execute(insert(meta), [{"key": "schema_version", "value": str(SCHEMA_VERSION)},
+                                            {"key": "created_by", "value": f"labrunner {__version__}"}])
+        except IntegrityError:
+            raise
+        except _STORE_FAILURES as exc:
+            raise StoreError(p, "create", exc) from exc
         log.info("store %s created (schema %d)", p, SCHEMA_VERSION)
         return cls(engine, p)
 
@@ -306,8 +334,24 @@ class Store:
         self.close()
 
     @contextmanager
+    def _guard(self, doing: str) -> Iterator[None]:
+        try:
+            yield
+        except IntegrityError:
+            raise
+        except _STORE_FAILURES as exc:
+            raise StoreError(self.path, doing, exc) from exc
+
+    @contextmanager
     def transaction(self) -> Iterator[Connection]:
-        with self.engine.begin() as conn:
+        """A write transaction; a database that cannot be written raises `StoreError`."""
+        with self._guard("write"), self.engine.begin() as conn:
+            yield conn
+
+    @contextmanager
+    def reading(self) -> Iterator[Connection]:
+        """A connection for reads; a database that cannot be read raises `StoreError`."""
+        with self._guard("read"), self.engine.connect() as conn:
             yield conn
 
     # --- campaigns ---------------------------------------------------------------------------
@@ -332,7 +376,7 @@ class Store:
         return int(cid)
 
     def campaign_ids(self) -> list[int]:
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             return [int(r) for r in conn.execute(select(campaigns.c.id).order_by(campaigns.c.id)).scalars()]
 
     def resolve(self, campaign_id: int | None) -> int:
@@ -347,7 +391,7 @@ class Store:
         return campaign_id
 
     def campaign(self, campaign_id: int) -> CampaignInfo:
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             row = conn.execute(select(campaigns).where(campaigns.c.id == campaign_id)).mappings().one_or_none()
         if row is None:
             raise UserError(f"{self.path}: no campaign {campaign_id}")
@@ -376,18 +420,41 @@ class Store:
 
     def next_step(self, campaign_id: int) -> int | None:
         """Index of the first step not yet recorded (None: all done)."""
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             return conn.execute(select(func.min(steps.c.idx)).where(
                 steps.c.campaign_id == campaign_id, steps.c.status != "done")).scalar()
 
     def last_time(self, campaign_id: int) -> float:
         """Campaign time of the latest event (every transition and record writes one)."""
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             return float(conn.execute(select(func.max(events.c.t_s)).where(
                 events.c.campaign_id == campaign_id)).scalar() or 0.0)
 
+    def last_moment(self, campaign_id: int) -> float:
+        """Campaign time of the latest thing stored: an event, a record's or a monitor stretch's last
+        sample, or a chamber or table reading taken with one (0.0 for an empty campaign).
+
+        Monitor stretches are stored while soaking with no event between them, so the latest event
+        can lie far behind what is stored; a resumed dry run must start after all of it."""
+        latest = self.last_time(campaign_id)
+        # Blocks of one session follow each other: the latest starts are the only candidates for the
+        # latest end (a block is at most a record long). The margin covers the sessions' order.
+        q = (select(sample_blocks.c.t0_s, sample_blocks.c.rate_hz, sample_blocks.c.counter, sample_blocks.c.chamber,
+                    sample_blocks.c.table)
+             .where(sample_blocks.c.campaign_id == campaign_id).order_by(sample_blocks.c.t0_s.desc()).limit(50))
+        with self.reading() as conn:
+            for t0, rate_hz, counter, chamber, table in conn.execute(q):
+                offsets = np.frombuffer(counter, dtype="<i4")
+                ends = [t0 + (float(offsets[-1]) / rate_hz if offsets.size else 0.0)]
+                for readings in (chamber, table):
+                    pairs = np.frombuffer(readings, dtype="<f8").reshape(-1, 2)
+                    if pairs.size:
+                        ends.append(float(pairs[:, 0].max()))
+                latest = max(latest, *ends)
+        return float(latest)
+
     def max_run(self, campaign_id: int) -> int:
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             return int(conn.execute(select(func.max(sample_blocks.c.run)).where(
                 sample_blocks.c.campaign_id == campaign_id)).scalar() or 0)
 
@@ -434,16 +501,28 @@ class Store:
 
     @staticmethod
     def _event(conn: Connection, campaign_id: int, t_s: float, kind: str, message: str, *, state: str | None = None,
-               step_idx: int | None = None, detail: dict[str, Any] | None = None) -> None:
+               step_idx: int | None = None, detail: dict[str, Any] | None = None, wall: float | None = None) -> None:
         log.debug("campaign %d event at t=%.1f s [%s]: %s", campaign_id, t_s, kind, message)
         conn.execute(insert(events).values(
-            campaign_id=campaign_id, t_s=t_s, wall=time.time(), kind=kind, state=state, step_idx=step_idx,
-            message=message, detail=json.dumps(detail) if detail else None))
+            campaign_id=campaign_id, t_s=t_s, wall=time.time() if wall is None else wall, kind=kind, state=state,
+            step_idx=step_idx, message=message, detail=json.dumps(detail) if detail else None))
 
     def event(self, campaign_id: int, t_s: float, kind: str, message: str, *, state: str | None = None,
-              step_idx: int | None = None, detail: dict[str, Any] | None = None) -> None:
+              step_idx: int | None = None, detail: dict[str, Any] | None = None, wall: float | None = None) -> None:
+        """Log one event; `wall` is when it happened if it is written later (default: now)."""
         with self.transaction() as conn:
-            self._event(conn, campaign_id, t_s, kind, message, state=state, step_idx=step_idx, detail=detail)
+            self._event(conn, campaign_id, t_s, kind, message, state=state, step_idx=step_idx, detail=detail,
+                        wall=wall)
+
+    def write_events(self, campaign_id: int, rows: Sequence[dict[str, Any]]) -> None:
+        """Log events held back while the store could not be written, in order, all or none.
+
+        Each row has the keyword arguments of `event` (t_s, kind, message, state, step_idx, detail, wall)."""
+        if not rows:
+            return
+        with self.transaction() as conn:
+            for row in rows:
+                self._event(conn, campaign_id, **row)
 
     def request(self, campaign_id: int, what: str | None) -> None:
         with self.transaction() as conn:
@@ -451,7 +530,7 @@ class Store:
                 request=what, requested_wall=time.time() if what else None))
 
     def pending_request(self, campaign_id: int) -> str | None:
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             return conn.execute(select(control.c.request).where(control.c.campaign_id == campaign_id)).scalar()
 
     # --- fits ------------------------------------------------------------------------------------
@@ -462,22 +541,38 @@ class Store:
                 campaign_id=campaign_id, created_wall=time.time(), software_version=__version__,
                 provenance=json.dumps(provenance), result=json.dumps(result))))
 
+    def find_fit(self, campaign_id: int, provenance: dict[str, Any], keys: Sequence[str]) -> int | None:
+        """The id of a stored fit of the campaign whose provenance agrees with `provenance` on `keys`
+        (the same data), or None."""
+        with self.reading() as conn:
+            rows = conn.execute(select(fits.c.id, fits.c.provenance).where(fits.c.campaign_id == campaign_id)
+                                .order_by(fits.c.id)).fetchall()
+        want = {k: provenance.get(k) for k in keys}
+        for fit_id, stored in rows:
+            try:
+                got = json.loads(stored)
+            except ValueError:  # an unreadable provenance is no match
+                continue
+            if isinstance(got, dict) and {k: got.get(k) for k in keys} == want:
+                return int(fit_id)
+        return None
+
     def fits_frame(self, campaign_id: int) -> pd.DataFrame:
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             return pd.read_sql(select(fits.c.id, fits.c.created_wall, fits.c.software_version, fits.c.provenance)
                                .where(fits.c.campaign_id == campaign_id).order_by(fits.c.id), conn)
 
     # --- readers ------------------------------------------------------------------------------------
 
     def steps_frame(self, campaign_id: int) -> pd.DataFrame:
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             return pd.read_sql(select(steps).where(steps.c.campaign_id == campaign_id).order_by(steps.c.idx), conn)
 
     def events_frame(self, campaign_id: int, last: int | None = None) -> pd.DataFrame:
         q = select(events).where(events.c.campaign_id == campaign_id)
         if last:
             q = q.order_by(events.c.id.desc()).limit(last)
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             frame = pd.read_sql(q, conn)
         return frame.sort_values("id").reset_index(drop=True)
 
@@ -485,7 +580,7 @@ class Store:
         q = (select(sample_blocks).where(sample_blocks.c.campaign_id == campaign_id,
                                          sample_blocks.c.kind.in_(list(kinds)))
              .order_by(sample_blocks.c.t0_s, sample_blocks.c.id))
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             for row in conn.execute(q).mappings():
                 n, enc = row["n"], row["encoding"]
                 lsb = (row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]) if enc == "i16" else None
@@ -603,4 +698,4 @@ def _interp_readings(t: np.ndarray, readings: np.ndarray, default: float = float
     return np.interp(t, readings[:, 0], readings[:, 1])
 
 
-__all__ = ["CampaignInfo", "SampleBlock", "Store"]
+__all__ = ["CampaignInfo", "SampleBlock", "Store", "StoreError"]

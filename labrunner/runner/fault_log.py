@@ -20,9 +20,12 @@ EventSink = Callable[..., None]  # event(kind, message, **detail)
 
 
 class FaultLog:
-    def __init__(self, stats: RunStats, event: EventSink) -> None:
+    def __init__(self, stats: RunStats, event: EventSink, thread_event: EventSink | None = None) -> None:
         self.stats = stats
         self.event = event
+        # The IMU reader's thread must not die of a store failure: its events go to a sink that
+        # keeps them and leaves the failure to the sequencer (`runner.journal`).
+        self.thread_event = thread_event or event
         self._retrying: dict[str, str] = {}  # instrument -> last retried error, until it answers again
 
     def attach(self, chamber: Any, table: Any, imu: Any) -> None:
@@ -43,10 +46,10 @@ class FaultLog:
         # Called from the IMU reader thread; the store is safe to use from there.
         if kind == "imu_link_lost":
             self.stats.faults += 1
-            self.event("fault", message)
+            self.thread_event("fault", message)
         else:
             self.stats.recoveries += 1
-            self.event("recovery", message)
+            self.thread_event("recovery", message)
 
     def note_recoveries(self) -> None:
         """At a safe point: every instrument retried since the last one has answered again."""

@@ -8,7 +8,11 @@ dies the N-th time the process reaches POINT:
   (on entry to `Store.commit_record`);
 - `commit`: inside the transaction that stores a record step, after its rows are written and
   before SQLite commits them (an SQLAlchemy `commit` event on the engine fires just before the
-  DBAPI commit).
+  DBAPI commit);
+- `monitor`: a monitor stretch (1 s means while ramping or soaking) is about to be stored; the
+  earlier ones are (on entry to `Store.save_monitor`);
+- `fit`: the end-of-run fit is stored and committed, the campaign not yet marked done (on return
+  from `Store.save_fit`).
 
 The hooks are installed here, around the production code, so that no production signature
 or environment variable carries a test seam.
@@ -28,7 +32,7 @@ from sqlalchemy.engine import Connection, Engine
 
 from labrunner.store import Store
 
-POINTS = ("record", "commit")
+POINTS = ("record", "commit", "monitor", "fit")
 
 
 def install(spec: str) -> Callable[[], None]:
@@ -62,11 +66,27 @@ def install(spec: str) -> Callable[[], None]:
         if getattr(storing, "active", False):
             reached("commit")
 
+    original_monitor = Store.save_monitor
+    original_fit = Store.save_fit
+
+    def save_monitor(self: Store, *args: Any, **kwargs: Any) -> None:
+        reached("monitor")
+        original_monitor(self, *args, **kwargs)
+
+    def save_fit(self: Store, *args: Any, **kwargs: Any) -> int:
+        fit_id = original_fit(self, *args, **kwargs)
+        reached("fit")
+        return fit_id
+
     Store.commit_record = commit_record  # type: ignore[method-assign]
+    Store.save_monitor = save_monitor  # type: ignore[method-assign]
+    Store.save_fit = save_fit  # type: ignore[method-assign]
     event.listen(Engine, "commit", on_commit)
 
     def uninstall() -> None:
         Store.commit_record = original  # type: ignore[method-assign]
+        Store.save_monitor = original_monitor  # type: ignore[method-assign]
+        Store.save_fit = original_fit  # type: ignore[method-assign]
         event.remove(Engine, "commit", on_commit)
 
     return uninstall
