@@ -79,6 +79,9 @@ class StoreError(UserError):
         super().__init__(f"cannot {doing} the database {path}: {self.cause}")
 
 
+# What SQLite says of a file that is not a labrunner store (another file, an empty or another database).
+_NOT_A_STORE = ("file is not a database", "no such table")
+
 SCHEMA_VERSION = 1
 # Columns `samples_frame(with_steps=True)` adds to the campaign CSV columns.
 STEP_COLUMNS = ("kind", "state", "step_idx", "setpoint_c", "rate_cmd_dps")
@@ -311,13 +314,20 @@ class Store:
         p = Path(path)
         if not p.exists():
             raise UserError(f"{p}: database not found")
+        if p.is_dir():
+            raise UserError(f"{p}: not a labrunner database")  # a directory
         engine = cls._engine(p)
         try:
             with engine.connect() as conn:
                 version = conn.execute(select(meta.c.value).where(meta.c.key == "schema_version")).scalar()
-        except (OperationalError, DatabaseError):
+        except _STORE_FAILURES as exc:
             engine.dispose()
-            raise UserError(f"{p}: not a labrunner database") from None
+            cause = str(getattr(exc, "orig", None) or exc)
+            if any(m in cause for m in _NOT_A_STORE):
+                raise UserError(f"{p}: not a labrunner database") from None
+            # A store that cannot be opened (a full disk for its -shm, a read-only directory, a damaged
+            # file) is named as such, not mistaken for a foreign file.
+            raise StoreError(p, "open", exc) from exc
         if version is None or int(version) != SCHEMA_VERSION:
             engine.dispose()
             raise UserError(f"{p}: database schema version {version}, this labrunner reads {SCHEMA_VERSION}")

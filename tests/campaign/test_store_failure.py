@@ -11,10 +11,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from sqlalchemy import event
 
 from labrunner.clock import VirtualClock
-from labrunner.store import Store
+from labrunner.errors import UserError
+from labrunner.runner.journal import Journal
+from labrunner.store import Store, StoreError
 
 from .conftest import cli
 from .fakes import FakeLab
@@ -201,3 +204,41 @@ def test_run_on_a_full_disk_exits_failed_without_a_traceback_and_resumes(tmp_pat
         recorded = sorted(int(m.split()[1]) for m in ev.message if re.match(r"step \d+ recorded: ", m))
         assert recorded == list(range(len(steps)))  # every step exactly once
         assert len(store.samples_frame(cid)) == int(steps.n_samples.sum())
+
+
+def test_a_store_failure_met_by_another_thread_is_raised_at_the_sequencers_next_safe_point(tmp_path):
+    c = InprocCampaign(tmp_path, PROC)
+    limit = StoreLimit(c.store.engine)
+    journal = Journal(c.store, c.cid)
+    limit.set("readonly")
+    journal.write(1.0, "fault", "imu link lost", state="soaking", step_idx=0, detail=None, raise_failure=False)
+    assert journal.pending == 1 and journal.failure is not None  # the reader thread goes on
+    with pytest.raises(StoreError, match="attempt to write a readonly database"):
+        journal.raise_failure()
+    # Held for the safe stop: kept in order, nothing raised, nothing written.
+    journal.hold()
+    before = limit.statements
+    journal.write(2.0, "transition", "soaking -> safe_stop", state="safe_stop", step_idx=0, detail=None)
+    journal.raise_failure()
+    assert limit.statements == before and journal.pending == 2
+    assert isinstance(journal.flush(), StoreError) and journal.pending == 2
+    limit.set(None)
+    assert journal.flush() is None and journal.pending == 0 and not journal.held
+    ev = c.events()
+    assert list(ev.message) == ["imu link lost", "soaking -> safe_stop"] and list(ev.t_s) == [1.0, 2.0]
+    c.store.close()
+
+
+def test_a_store_that_cannot_be_opened_is_named_not_mistaken_for_a_foreign_file(tmp_path):
+    c = InprocCampaign(tmp_path, PROC)
+    path = c.store.path
+    c.store.close()
+    with path.open("r+b") as fh:  # a damaged header page
+        fh.seek(100)
+        fh.write(b"\xff" * 3000)
+    with pytest.raises(StoreError, match=f"cannot open the database {re.escape(str(path))}: "):
+        Store.open_existing(path)
+    foreign = tmp_path / "notes.db"
+    foreign.write_text("not a database at all, just some notes " * 40)
+    with pytest.raises(UserError, match="not a labrunner database"):
+        Store.open_existing(foreign)
