@@ -56,9 +56,10 @@ def fit(data: str | Path | CampaignData, *, campaign: int | None = None, options
         opts = dataclasses.replace(options or FitOptions(), **overrides)
     except TypeError as exc:
         raise UserError(f"fit options: {exc}") from None
-    source = data.provenance.get("source") if isinstance(data, CampaignData) else data
     if out is not None:  # before the work and before the fit is stored: a refusal changes nothing
-        check_output(out, inputs=[source], force=force, directory=True, option="out")
+        source, is_store = _source(data)
+        check_output(out, store=source if is_store else None, inputs=[source], force=force, directory=True,
+                     option="out")
     loaded = data if isinstance(data, CampaignData) else load_data(data, campaign=campaign)
     result = fit_campaign(loaded.frame, opts, provenance=loaded.provenance, progress=progress)
     prov = loaded.provenance
@@ -76,12 +77,24 @@ def fit(data: str | Path | CampaignData, *, campaign: int | None = None, options
     return result
 
 
+def _source(data: str | Path | CampaignData) -> tuple[str | Path | None, bool]:
+    """Where a fit's data come from, and whether that is a store (for `check_output`)."""
+    from labrunner.data_source import CampaignData, is_sqlite
+
+    if isinstance(data, CampaignData):
+        return data.provenance.get("source"), data.provenance.get("kind") == "store"
+    # The header is read only when handed a path, before this call opens anything of it.
+    return data, is_sqlite(data)
+
+
 def write_fit(result: FitResult, out: str | Path, summary: str | None = None, *, force: bool = False) -> list[str]:
     """Write a fit's model JSON files, C header, summary and evaluation tables into `out`; returns the names.
     `out` may not hold the fitted data; a directory that is not empty is written into only with `force`."""
     from labrunner.calibration.outputs import write_outputs
 
-    check_output(out, inputs=[result.provenance.get("source")], force=force, directory=True, option="out")
+    prov = result.provenance
+    check_output(out, store=prov.get("source") if prov.get("kind") == "store" else None, inputs=[prov.get("source")],
+                 force=force, directory=True, option="out")
     return write_outputs(result, Path(out), summary)
 
 

@@ -248,11 +248,11 @@ def fit_dir(db: Path, given: str | Path | None, campaign_id: int) -> Path:
     return Path(given) if given is not None else db.with_name(db.stem + "_fit") / f"campaign-{campaign_id}"
 
 
-def _check_fit_dir(procedure: Procedure, out: Path, inputs: list[Any], force: bool) -> None:
+def _check_fit_dir(procedure: Procedure, out: Path, db: Path, inputs: list[Any], force: bool) -> None:
     """Refuse, before anything runs, a fit directory that holds an input or (without `force`) files."""
     if procedure.model.fit.run:
-        check_output(out, inputs=[i for i in inputs if isinstance(i, (str, Path))], force=force, directory=True,
-                     option="the fit directory")
+        check_output(out, store=db, inputs=[i for i in inputs if isinstance(i, (str, Path))], force=force,
+                     directory=True, option="the fit directory")
 
 
 # --- run, resume ---------------------------------------------------------------------------------------------
@@ -298,8 +298,8 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
         # The id new_campaign will give (SQLite's largest + 1): the default fit directory is checked
         # before the campaign exists, so a refusal adds nothing to the store.
         planned_id = max(store.campaign_ids(), default=0) + 1
-        _check_fit_dir(proc, fit_dir(db, fit_out, planned_id),
-                       [db, proc_path, sim_config, None if sim else lab], force)
+        _check_fit_dir(proc, fit_dir(db, fit_out, planned_id), db, [proc_path, sim_config, None if sim else lab],
+                       force)
         cid = store.new_campaign(name=proc.name, procedure_text=proc.text, procedure_path=proc_path,
                                  procedure_sha256=proc.sha256, lab_config=lab_dict, mode="sim" if sim else "lab",
                                  sim_config=sim_dict, clock_t0=the_lab.clock.now(), plan=proc.steps())
@@ -333,7 +333,7 @@ def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path
         if info.status == "running" and process_alive(info.pid, info.host):
             raise UserError(f"campaign {cid} is running (process {info.pid}); use labrunner status or abort")
         if fit_out is not None:  # the default directory is this campaign's own: its fit is written again
-            _check_fit_dir(procedure, Path(fit_out), [db, lab], force)
+            _check_fit_dir(procedure, Path(fit_out), db, [lab], force)
         nxt = store.next_step(cid)
         orientation = procedure.steps()[nxt].orientation if nxt is not None else None
         if info.mode == "sim":

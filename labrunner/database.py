@@ -113,13 +113,13 @@ class CampaignSummary:
 
 def open_database(db: str | Path) -> Database:
     """Open a labrunner store for reading (a context manager; also usable while a campaign runs)."""
-    from labrunner.data_source import is_sqlite
     from labrunner.store import Store
 
     path = Path(db)
-    # Looked at before SQLite opens it: opening an empty or foreign file in WAL mode writes to it.
-    if path.is_file() and not is_sqlite(path):
-        raise UserError(f"{path}: not a labrunner database" + (" (an empty file)" if path.stat().st_size == 0 else ""))
+    # SQLite would make an empty file a database (WAL mode writes a header). Only stat, not read: a
+    # descriptor closed here would drop the SQLite locks of a store this process has open.
+    if path.is_file() and path.stat().st_size == 0:
+        raise UserError(f"{path}: not a labrunner database (an empty file)")
     return Database(Store.open_existing(path))
 
 
@@ -253,7 +253,7 @@ class Campaign:
         """Fit the calibration models to the recorded steps, stored with the campaign unless
         `save=False`; `out` as in `labrunner.fit` (a non-empty directory only with `force`)."""
         if out is not None:  # before reading and fitting: a refused directory costs nothing
-            check_output(out, inputs=[self.db.path], force=force, directory=True, option="out")
+            check_output(out, store=self.db.path, force=force, directory=True, option="out")
         return fit(self.data(), options=options, save=save, out=out, force=force, progress=progress, **overrides)
 
     def diagnose(self, **options: Any) -> Diagnosis:
@@ -266,7 +266,7 @@ class Campaign:
         from labrunner.campaign_csv import write_campaign
 
         if isinstance(path, (str, Path)):
-            path = check_output(path, inputs=[self.db.path], force=force, option="--csv")
+            path = check_output(path, store=self.db.path, force=force, option="--csv")
         frame = self._store.samples_frame(self.id, include_monitor=include_monitor)
         if frame.empty:
             raise UserError(f"{self.db.path}: campaign {self.id} has no recorded samples to export")

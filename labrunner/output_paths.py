@@ -7,8 +7,11 @@ with `force`: a campaign store lost to `export w.db --csv w.db` cannot be recove
 or a directory that is not empty, is written only with `force`. `-` (stdout) is never a file.
 
 Paths are compared resolved (symlinks and `..` followed) and, when both exist, with `os.path.samefile`
-(hard links, case-insensitive file systems). This module imports nothing else of labrunner but its
-error class, so every room may use it.
+(hard links, case-insensitive file systems). Nothing here opens a file: closing any descriptor of a
+database drops every POSIX lock the process holds on it, SQLite's included, and a process running a
+campaign checks its fit directory with the store open (another process could then delete the WAL it
+writes). So the caller says which path is the store. This module imports nothing else of labrunner
+but its error class, so every room may use it.
 """
 
 from __future__ import annotations
@@ -21,7 +24,6 @@ from pathlib import Path
 from labrunner.errors import UserError
 
 STDOUT = "-"
-SQLITE_MAGIC = b"SQLite format 3\x00"
 # Files SQLite keeps beside a database (WAL mode, rollback journal): writing one corrupts the store.
 SQLITE_COMPANIONS = ("-wal", "-shm", "-journal")
 
@@ -35,37 +37,22 @@ class _Protected:
     """A path no output may take, and how a refusal names it."""
 
     path: Path
-    given: str  # the input as given
-    companion: bool = False
-
-    @property
-    def what(self) -> str:
-        # The header is read only to word a refusal: closing a descriptor of a file drops every POSIX
-        # lock this process holds on it, SQLite's included, and a store open here (a run checking its
-        # fit directory) would then let another process delete the WAL it is writing.
-        kind = f"the store {self.given}" if _is_sqlite(Path(self.given)) else f"the input {self.given}"
-        return f"a companion file of {kind}" if self.companion else kind
+    what: str  # "the store w.db", "a companion file of the store w.db", "the input quick.yaml"
 
 
-def _is_sqlite(path: Path) -> bool:
-    try:
-        with open(path, "rb") as fh:
-            return fh.read(16) == SQLITE_MAGIC
-    except OSError:
-        return False
-
-
-def _protected(inputs: Iterable[str | Path | None]) -> list[_Protected]:
+def _protected(store: str | Path | None, inputs: Iterable[str | Path | None]) -> list[_Protected]:
     out: list[_Protected] = []
-    for given in inputs:
+    for given, role in [(store, "the store"), *((i, "the input") for i in inputs)]:
         if given is None or str(given) == STDOUT:
             continue
         path = Path(given)
+        what = f"{role} {given}"
         # Both the path as given and as resolved: SQLite names its companions after the path it was
-        # opened with, and newer versions after the symlink's target.
+        # opened with, and newer versions after the symlink's target. Any input may be a store (fit
+        # and diagnose read either), so every input's companions are protected.
         for base in dict.fromkeys((Path(os.path.abspath(path)), path.resolve())):
-            out.append(_Protected(base, str(given)))
-            out += [_Protected(Path(f"{base}{suffix}"), str(given), companion=True) for suffix in SQLITE_COMPANIONS]
+            out.append(_Protected(base, what))
+            out += [_Protected(Path(f"{base}{suffix}"), f"a companion file of {what}") for suffix in SQLITE_COMPANIONS]
     return out
 
 
@@ -78,20 +65,22 @@ def _same(a: Path, b: Path) -> bool:
         return False
 
 
-def check_output(path: str | Path, *, inputs: Iterable[str | Path | None] = (), force: bool = False,
-                 directory: bool = False, option: str = "output", allow_stdout: bool = False) -> Path | None:
+def check_output(path: str | Path, *, store: str | Path | None = None, inputs: Iterable[str | Path | None] = (),
+                 force: bool = False, directory: bool = False, option: str = "output",
+                 allow_stdout: bool = False) -> Path | None:
     """Check that writing `path` overwrites nothing it should not; returns it resolved (None: stdout).
 
-    `inputs` are the paths the command reads (None entries are skipped); `directory` says the output is
-    a directory files are written into; `option` names it in messages (e.g. `--csv`); with
-    `allow_stdout`, `-` means stdout. Raises `OutputPathError` (exit 2) naming the path and the reason.
+    `store` is the database the command reads or writes and `inputs` the other paths it reads (None
+    entries are skipped); `directory` says the output is a directory files are written into; `option`
+    names it in messages (e.g. `--csv`); with `allow_stdout`, `-` means stdout. Raises
+    `OutputPathError` (exit 2) naming the path and the reason.
     """
     if allow_stdout and str(path) == STDOUT:
         return None
     given = Path(path)
     target = given.resolve()
     label = f"{option} {path}"
-    protected = _protected(inputs)
+    protected = _protected(store, inputs)
     for p in protected:
         if _same(target, p.path):
             raise OutputPathError(f"{label} is {p.what}; refusing to overwrite it (choose another path)")

@@ -53,7 +53,9 @@ def test_the_store_itself_is_refused_even_with_force(tmp_path: Path) -> None:
     db = tmp_path / "w.db"
     Store.create(db).close()
     with pytest.raises(OutputPathError, match=r"--csv .*w.db is the store .*w.db; refusing to overwrite it"):
-        check_output(db, inputs=[db], force=True, option="--csv")
+        check_output(db, store=db, force=True, option="--csv")
+    with pytest.raises(OutputPathError, match=r"is the store"):  # named as the store when it is an input too
+        check_output(db, store=db, inputs=[db], force=True)
 
 
 def test_an_input_that_is_not_a_store_is_named_an_input(tmp_path: Path) -> None:
@@ -70,14 +72,14 @@ def test_the_same_file_by_another_name_is_refused(tmp_path: Path, monkeypatch: p
     monkeypatch.chdir(tmp_path / "sub")
     for alias in ("../w.db", f"{tmp_path}/./sub/../w.db"):
         with pytest.raises(OutputPathError, match="is the store"):
-            check_output(alias, inputs=[db], force=True)
+            check_output(alias, store=db, force=True)
     os.symlink(db, tmp_path / "link.db")
     with pytest.raises(OutputPathError, match="is the store"):
-        check_output(tmp_path / "link.db", inputs=[db], force=True)
+        check_output(tmp_path / "link.db", store=db, force=True)
     os.link(db, tmp_path / "hard.db")  # a hard link resolves to itself: only samefile sees it
     with pytest.raises(OutputPathError, match="is the store"):
-        check_output(tmp_path / "hard.db", inputs=[db], force=True)
-    with pytest.raises(OutputPathError, match="is the store"):  # and the other way round
+        check_output(tmp_path / "hard.db", store=db, force=True)
+    with pytest.raises(OutputPathError, match="is the input"):  # and the other way round
         check_output(db, inputs=[tmp_path / "hard.db"], force=True)
 
 
@@ -86,7 +88,9 @@ def test_sqlite_companions_are_refused_whether_they_exist_or_not(tmp_path: Path,
     db = tmp_path / "w.db"
     Store.create(db).close()
     with pytest.raises(OutputPathError, match=f"w.db{suffix} is a companion file of the store"):
-        check_output(f"{db}{suffix}", inputs=[db], force=True)
+        check_output(f"{db}{suffix}", store=db, force=True)
+    with pytest.raises(OutputPathError, match=f"w.db{suffix} is a companion file of the input"):
+        check_output(f"{db}{suffix}", inputs=[db], force=True)  # fit and diagnose read a store or a CSV
 
 
 def test_an_existing_file_needs_force(tmp_path: Path) -> None:
@@ -123,7 +127,7 @@ def test_a_directory_output_that_is_a_file_or_under_one(tmp_path: Path) -> None:
     db = tmp_path / "x.db"
     Store.create(db).close()
     with pytest.raises(OutputPathError, match="is the store"):
-        check_output(db, inputs=[db], directory=True, force=True)
+        check_output(db, store=db, directory=True, force=True)
     with pytest.raises(OutputPathError, match="is a file, not a directory"):
         check_output(db, directory=True, force=True)
     with pytest.raises(OutputPathError, match="is not a directory"):
@@ -138,6 +142,51 @@ def test_a_directory_holding_an_input_is_refused_even_with_force(tmp_path: Path)
         check_output(tmp_path, inputs=[data], directory=True, force=True)
     # An input deeper down is out of the writers' reach.
     assert check_output(tmp_path.parent, inputs=[data], directory=True, force=True) == tmp_path.parent.resolve()
+
+
+def test_the_check_opens_no_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Closing any descriptor of a database drops the SQLite locks this process holds on it (POSIX
+    # locks are per process and file): a run checks its fit directory with its store open, and a
+    # dropped lock let `labrunner abort`'s process delete the WAL the run was writing.
+    db = tmp_path / "w.db"
+    Store.create(db).close()
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "x").write_text("")
+
+    def no_open(*args: object, **kwargs: object) -> None:
+        raise AssertionError(f"check_output opened {args[0]!r}")
+
+    monkeypatch.setattr("builtins.open", no_open)
+    monkeypatch.setattr("os.open", no_open)
+    for kwargs in ({"store": db}, {"inputs": [db]}):
+        with pytest.raises(OutputPathError, match="is the"):
+            check_output(db, force=True, **kwargs)  # type: ignore[arg-type]
+        with pytest.raises(OutputPathError, match="holds the"):
+            check_output(tmp_path, force=True, directory=True, **kwargs)  # type: ignore[arg-type]
+        with pytest.raises(OutputPathError, match="not empty"):
+            check_output(tmp_path / "out", directory=True, **kwargs)  # type: ignore[arg-type]
+
+
+def test_a_running_store_keeps_its_wal_through_refused_writes(tmp_path: Path) -> None:
+    # The failure the check once caused: with the run's locks dropped, another process closing the
+    # store took itself for the last one and deleted the WAL the run still wrote to.
+    db = tmp_path / "w.db"
+    proc = tmp_path / "tiny.yaml"
+    proc.write_text(TINY)
+    with labrunner.start_run(proc, db=db) as session:
+        def refuse_and_peek(p: labrunner.Progress) -> None:
+            if p.steps_done == 2 and p.state == "rate_settling":
+                with labrunner.open(db) as database:  # as a script reading its own running store would
+                    with pytest.raises(labrunner.OutputPathError):
+                        database.campaign().export_csv(db, force=True)
+                code = f"import labrunner; labrunner.list_campaigns({str(db)!r})"
+                peek = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+                assert peek.returncode == 0, peek.stderr
+                assert Path(f"{db}-wal").exists(), "another process deleted the WAL of the running store"
+
+        result = session.execute(refuse_and_peek)
+    assert result.state == "done" and result.steps_done == 36
+    assert labrunner.status(db).steps_done == 36
 
 
 def test_missing_inputs_and_none_are_fine(tmp_path: Path) -> None:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from labrunner import api
+from labrunner.data_source import is_sqlite
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
 
@@ -76,11 +77,14 @@ def _options(args: argparse.Namespace) -> FitOptions:
 
 def run(args: argparse.Namespace) -> int:
     options = _options(args)
-    # Before the fit is computed and stored: a refused output leaves the store as it was.
+    # Before the fit is computed and stored: a refused output leaves the store as it was. (The header
+    # is read before anything here opens the store, so no SQLite lock can be dropped by it.)
+    store = args.data if is_sqlite(args.data) else None
     if args.json:
-        check_output(args.json, inputs=[args.data], force=args.force, option="--json", allow_stdout=True)
+        check_output(args.json, store=store, inputs=[args.data], force=args.force, option="--json",
+                     allow_stdout=True)
     if args.out:
-        check_output(args.out, inputs=[args.data], force=args.force, directory=True, option="--out")
+        check_output(args.out, store=store, inputs=[args.data], force=args.force, directory=True, option="--out")
     start = time.perf_counter()
 
     def progress(msg: str) -> None:

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from labrunner import api
+from labrunner.data_source import is_sqlite
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
 
@@ -47,11 +48,13 @@ def handler(args: argparse.Namespace) -> int:
     json_out = Path(args.json_out)
     model_out = Path(args.model) if args.model else json_out.with_suffix(".imu_model.json")
     # All outputs checked before the (long) diagnosis: none may be the data, none overwritten unasked.
-    checked_json = check_output(json_out, inputs=[args.data], force=args.force, option="--json")
-    if check_output(model_out, inputs=[args.data], force=args.force, option="--model") == checked_json:
+    store = args.data if is_sqlite(args.data) else None  # read before anything here opens the store
+    checked_json = check_output(json_out, store=store, inputs=[args.data], force=args.force, option="--json")
+    if check_output(model_out, store=store, inputs=[args.data], force=args.force, option="--model") == checked_json:
         raise UserError(f"--model {model_out} and --json {json_out} are the same file; give two paths")
     if args.report:
-        check_output(args.report, inputs=[args.data], force=args.force, directory=True, option="--report")
+        check_output(args.report, store=store, inputs=[args.data], force=args.force, directory=True,
+                     option="--report")
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip()) if args.causes else None
     data = api.load_data(args.data, campaign=args.campaign, include_monitor=True)  # ramps and soaks too
     try:
