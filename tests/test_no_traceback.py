@@ -219,3 +219,66 @@ def test_a_path_the_system_refuses_is_bad_input(monkeypatch: pytest.MonkeyPatch,
     monkeypatch.setattr(campaign, "cmd_status", refused)
     code, err = _in_process(tmp_path, ("status", "x.db"))
     assert (code, err.strip()) == (2, "labrunner status: error: /lab/locked.db: permission denied")
+
+
+LONG = """\
+name: long
+temperatures: {list_c: [15, 25, 35]}
+soak: {tolerance_c: 0.5, stable_window_s: 60, max_wait_s: 3600, on_timeout: continue, poll_s: 30}
+orientations: [z_up, z_down]
+remount_s: 10
+rates: {triangular: {max_dps: 100, step_dps: 10}}
+settle_s: 1
+record_s: 2
+record_poll_s: 2
+fit: {run: false}
+"""
+
+
+def test_a_closed_stderr_does_not_end_a_run(lab: Path) -> None:
+    """`labrunner run ... 2>&1 | head` once aborted the campaign (the progress bar's BrokenPipeError, raised
+    in the sequencer's progress callback, was a fault). The display goes; the campaign goes on to the end."""
+    (lab / "long.yaml").write_text(LONG)
+    proc = subprocess.Popen([sys.executable, "-m", "labrunner", "run", "long.yaml", "--sim", "--db", "long.db"],
+                            cwd=lab, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    assert proc.stderr is not None
+    first = proc.stderr.read(100)  # the plan line; the bar's updates come after it, into a closed pipe
+    proc.stderr.close()
+    assert proc.wait(timeout=120) == EXIT_BROKEN_PIPE  # the summary at the end found the pipe closed
+    assert b"240 steps" in first
+    status = labrunner.status(lab / "long.db")
+    assert (status.status, status.steps_done, status.faults) == ("done", 240, 0)
+
+
+class _PipeThatCloses(io.StringIO):
+    """stderr whose reader leaves: writes fail with EPIPE once `gone`."""
+
+    gone = False
+
+    def write(self, text: str) -> int:
+        if self.gone:
+            raise BrokenPipeError(32, "Broken pipe")
+        return super().write(text)
+
+    def flush(self) -> None:
+        if self.gone:
+            raise BrokenPipeError(32, "Broken pipe")
+
+
+def test_the_progress_bar_goes_quiet_when_its_reader_leaves(monkeypatch: pytest.MonkeyPatch) -> None:
+    from labrunner.api import Progress
+    from labrunner.commands.progress import ProgressBar
+
+    stream = _PipeThatCloses()
+    monkeypatch.setattr(sys, "stderr", stream)
+    bar = ProgressBar(10, quiet=False)
+    bar.bar.mininterval, bar.bar.miniters = 0.0, 1  # draw on every update, as a slow real run does
+    bar(Progress(steps_done=1, steps_total=10, state="recording", step=None, lab_time_s=60.0))
+    assert "1/10 steps" in stream.getvalue()
+    stream.gone = True
+    for done in range(2, 11):  # every update after the reader left: none raises into the sequencer
+        bar(Progress(steps_done=done, steps_total=10, state="recording", step=None, lab_time_s=60.0 * done))
+    assert bar.bar is None  # switched off at the first failed draw
+    bar.close()
+    stream.gone = True
+    assert ProgressBar(10, quiet=False).bar is None  # gone before the first draw

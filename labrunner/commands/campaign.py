@@ -153,9 +153,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     with api.start_run(args.procedure, db=args.db, lab="sim" if args.sim else args.lab, seed=args.seed,
                        faults=args.faults, sim_config=args.sim_config, fit_out=args.fit_out,
                        auto_resume=not args.no_auto_resume, force=args.force) as session:
-        print(f"campaign {session.campaign_id} '{session.procedure.name}' in {args.db}: {session.steps_total} steps, "
+        _tell(f"campaign {session.campaign_id} '{session.procedure.name}' in {args.db}: {session.steps_total} steps, "
               f"{session.planned_samples:,} samples planned, about {session.estimated_lab_s / 3600:.1f} h of lab "
-              "time" + (" (dry run, simulated lab)" if args.sim else ""), file=sys.stderr)
+              "time" + (" (dry run, simulated lab)" if args.sim else ""))
         return _execute(session, args.quiet, args.db)
 
 
@@ -165,9 +165,18 @@ def cmd_resume(args: argparse.Namespace) -> int:
         if session.already_done:
             print(f"campaign {session.campaign_id} in {args.db} is complete; nothing to resume")
             return 0
-        print(f"resuming campaign {session.campaign_id} '{session.procedure.name}' ({session.status_before}) at "
-              f"step {session.next_step} of {session.steps_total}", file=sys.stderr)
+        _tell(f"resuming campaign {session.campaign_id} '{session.procedure.name}' ({session.status_before}) at "
+              f"step {session.next_step} of {session.steps_total}")
         return _execute(session, args.quiet, args.db)
+
+
+def _tell(line: str) -> None:
+    """A line on stderr before the campaign starts. A closed stderr (`2>&1 | head` gone) must not leave a
+    campaign created and never run: the line is lost, the campaign runs (the progress bar goes quiet too)."""
+    try:
+        print(line, file=sys.stderr)
+    except OSError:
+        pass
 
 
 # --- status ------------------------------------------------------------------------------------------
