@@ -144,6 +144,7 @@ def serve_sim(*, config: str | Path | dict[str, Any] | None = None, speed: float
 
     if speed <= 0:
         raise UserError("--speed must be > 0")
+    _check_serving(host, profile, ports)
     sim_config = load_sim_config(config)
     try:
         lab = SimLab(sim_config, ScaledClock(speed), host=host, link=link, chamber_transport=chamber_transport,
@@ -152,3 +153,25 @@ def serve_sim(*, config: str | Path | dict[str, Any] | None = None, speed: float
         raise UserError(f"cannot start the simulated lab: {exc}") from None
     log.info("simulated lab serving on %s at %gx", host, speed)
     return lab
+
+
+def _check_serving(host: str, profile: str, ports: tuple[int, int, int]) -> None:
+    """What the servers would fail on deep inside (a ValueError from the profile table, pymodbus' "could not
+    start listen", an OverflowError from bind), said first and naming the argument."""
+    import socket
+
+    from labrunner.drivers.chamber_profiles import profile_from
+
+    try:
+        profile_from(profile)
+    except ValueError as exc:
+        raise UserError(f"--profile: {exc}") from None
+    bad = [p for p in ports if not 0 <= p <= 65535]
+    if bad:
+        raise UserError(f"port {bad[0]} out of range: ports are 0 (any free one) to 65535")
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, kind, proto) as probe:
+            probe.bind(address)
+    except OSError as exc:
+        raise UserError(f"--host {host}: cannot listen there ({exc.strerror or exc})") from None

@@ -137,7 +137,7 @@ def _main(argv: Sequence[str] | None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    command = f"labrunner {args.command}"
+    command = " ".join(["labrunner", args.command] + ([args.sim_command] if getattr(args, "sim_command", None) else []))
     try:
         return int(args.func(args) or 0)
     except UserError as exc:

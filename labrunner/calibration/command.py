@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from labrunner import api
+from labrunner.commands.types import count
 from labrunner.data_source import is_sqlite
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
@@ -50,7 +51,7 @@ examples:
     p.add_argument("--splits", default=",".join(SPLITS), metavar="NAMES",
                    help=f"evaluation splits, comma-separated (default: all: {', '.join(SPLITS)})")
     p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
-    p.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random held-out split")
+    p.add_argument("--seed", type=count, default=0, metavar="N", help="seed of the random held-out split")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.add_argument("--no-store", action="store_true",
                    help="with a database: do not store this fit in it (stored by default, with its provenance)")

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from labrunner import api
 from labrunner.commands.progress import ProgressBar
+from labrunner.commands.types import count, interval, seconds
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,9 +38,9 @@ examples:
     where.add_argument("--lab", type=Path, metavar="LAB.yaml", help="lab configuration naming the instruments")
     run.add_argument("--sim-config", type=Path, metavar="SIM.yaml",
                      help="dry runs: sim configuration (seed, plants, IMU model, faults)")
-    run.add_argument("--seed", type=int, default=None, metavar="N",
+    run.add_argument("--seed", type=count, default=None, metavar="N",
                      help="dry runs: seed of the simulated lab (default: the sim configuration's)")
-    run.add_argument("--faults", type=int, default=0, metavar="N",
+    run.add_argument("--faults", type=count, default=0, metavar="N",
                      help="dry runs: inject N seeded random instrument faults across the campaign")
     run.add_argument("--fit-out", type=Path, default=None, metavar="DIR",
                      help="directory for the fitted models (default: next to the database, <db>_fit/campaign-<id>/)")
@@ -80,8 +81,8 @@ examples:
     st.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
     st.add_argument("--campaign", type=int, default=None, metavar="N",
                     help="campaign id (default: the latest in the database)")
-    st.add_argument("--events", type=int, default=8, metavar="N", help="how many recent events to show")
-    st.add_argument("--watch", type=float, default=None, metavar="S",
+    st.add_argument("--events", type=count, default=8, metavar="N", help="how many recent events to show")
+    st.add_argument("--watch", type=interval, default=None, metavar="S",
                     help="refresh every S seconds until Ctrl-C (default: print once)")
     st.set_defaults(func=cmd_status)
 
@@ -99,7 +100,7 @@ examples:
     ab.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
     ab.add_argument("--campaign", type=int, default=None, metavar="N",
                     help="campaign id (default: the latest in the database)")
-    ab.add_argument("--wait", type=float, default=60.0, metavar="S",
+    ab.add_argument("--wait", type=seconds, default=60.0, metavar="S",
                     help="seconds to wait for the running process to reach the safe state")
     ab.set_defaults(func=cmd_abort)
 

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from labrunner import api
+from labrunner.commands.types import port, seconds
 from labrunner.output_paths import check_output
 
 
@@ -36,10 +37,10 @@ examples:
                        help="simulated time runs N times faster than wall time")
     serve.add_argument("--host", default="127.0.0.1", metavar="HOST",
                        help="address to listen on")
-    serve.add_argument("--chamber-port", type=int, default=0, metavar="PORT", help="Modbus port (0: any free port)")
-    serve.add_argument("--table-port", type=int, default=0, metavar="PORT",
+    serve.add_argument("--chamber-port", type=port, default=0, metavar="PORT", help="Modbus port (0: any free port)")
+    serve.add_argument("--table-port", type=port, default=0, metavar="PORT",
                        help="rate table's TCP port with --link tcp (0: any free port)")
-    serve.add_argument("--imu-port", type=int, default=0, metavar="PORT",
+    serve.add_argument("--imu-port", type=port, default=0, metavar="PORT",
                        help="IMU's TCP port with --link tcp (0: any free port)")
     serve.add_argument("--chamber-transport", choices=("tcp", "rtu"), default="tcp",
                        help="Modbus TCP, or RTU framing over a TCP socket (socket://)")
@@ -52,7 +53,7 @@ examples:
     serve.add_argument("--lab-config", type=Path, metavar="LAB.yaml",
                        help="also write a lab configuration pointing at these sims")
     serve.add_argument("--force", action="store_true", help="overwrite an existing --lab-config file")
-    serve.add_argument("--duration", type=float, default=None, metavar="S",
+    serve.add_argument("--duration", type=seconds, default=None, metavar="S",
                        help="stop after S wall seconds (default: run until Ctrl-C or SIGTERM)")
     serve.set_defaults(func=serve_command)
     sim.set_defaults(func=lambda args: (sim.print_help(), 2)[1])
