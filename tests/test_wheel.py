@@ -127,6 +127,6 @@ def test_built_wheel_installs_alone_and_runs_the_quick_dry_run(tmp_path: Path) -
     run = _run([cli, "run", "quick", "--sim", "--db", "run.db", "--quiet"], cwd=work, env=env, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
     assert "done. 192/192 steps recorded" in run.stderr
-    models = work / "run_fit"
+    models = work / "run_fit" / "campaign-1"  # each campaign's end-of-run fit in its own directory
     assert {"polynomial.json", "rbf.json", "imu_calibration.h"} <= {p.name for p in models.iterdir()}
     assert (work / "run.db").stat().st_size > 0
