@@ -41,6 +41,7 @@ if TYPE_CHECKING:
         load_sim_config,
         open,
         read_campaign_csv,
+        report,
         resume,
         run,
         serve_sim,
@@ -54,7 +55,7 @@ __all__ = [
     "AbortResult", "Campaign", "CampaignStatus", "CampaignSummary", "Database", "Event", "NextStep", "OutputPathError",
     "Progress", "RunResult", "Session", "UserError", "__version__", "abort", "check_output", "diagnose", "fit",
     "list_campaigns", "load_data", "load_lab_config", "load_procedure", "load_sim_config", "open",
-    "read_campaign_csv", "resume", "run", "serve_sim", "start_resume", "start_run", "status", "write_fit",
+    "read_campaign_csv", "report", "resume", "run", "serve_sim", "start_resume", "start_run", "status", "write_fit",
 ]
 _API = frozenset(__all__) - {"UserError", "__version__"}  # what __getattr__ loads from labrunner.api
 

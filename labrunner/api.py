@@ -35,6 +35,7 @@ from labrunner.output_paths import OutputPathError, check_output
 if TYPE_CHECKING:
     from labrunner.lab import LabConfig
     from labrunner.procedure import Procedure
+    from labrunner.report_html import ReportResult
     from labrunner.sims.lab import SimLab
     from labrunner.sims.world import SimLabConfig
 
@@ -43,8 +44,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "AbortResult", "Campaign", "CampaignStatus", "CampaignSummary", "Database", "Event", "NextStep", "OutputPathError",
     "Progress", "RunResult", "Session", "UserError", "abort", "check_output", "diagnose", "fit", "list_campaigns",
-    "load_data", "load_lab_config", "load_procedure", "load_sim_config", "open", "read_campaign_csv", "resume", "run",
-    "serve_sim", "start_resume", "start_run", "status", "write_fit",
+    "load_data", "load_lab_config", "load_procedure", "load_sim_config", "open", "read_campaign_csv", "report",
+    "resume", "run", "serve_sim", "start_resume", "start_run", "status", "write_fit",
 ]
 
 
@@ -107,6 +108,15 @@ def status(db: str | Path, *, campaign: int | None = None, events: int = 8) -> C
     """The progress of a campaign (default: the latest in `db`) and its `events` most recent events."""
     with open(db) as database:
         return database.campaign(campaign).status_report(events=events)
+
+
+def report(db: str | Path, *, html: str | Path, campaign: int | None = None, force: bool = False) -> ReportResult:
+    """Write a campaign's report (default: the latest in `db`) as one self-contained HTML file
+    (`labrunner report`): headline, overview plot, steps and events, the stored fit's figures and
+    tables, provenance. `html` may not be the store; an existing file only with `force`."""
+    from labrunner.report_html import write_report
+
+    return write_report(db, html, campaign=campaign, force=force)
 
 
 # --- inputs and the simulated lab ---------------------------------------------------------------------------

@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "labrunner.commands.check",  # check
     "labrunner.calibration.command",  # fit
     "labrunner.discrepancy.command",  # diagnose
+    "labrunner.commands.report",  # report
 )
 
 

@@ -38,6 +38,7 @@ ROOMS: dict[str, str] = {
     "labrunner.campaign_fit": "orchestration",
     "labrunner.campaign_analysis": "orchestration",
     "labrunner.database": "orchestration",
+    "labrunner.report_html": "orchestration",  # reads the store, draws with the analysis's figures
     "labrunner.fault_plan": "orchestration",
     "labrunner.lab": "composition",
     "labrunner.api": "composition",

@@ -119,11 +119,17 @@ def _cases() -> Iterator[Case]:
     if "list" in COMMANDS:
         yield bad("list", "text.db", names="text.db")
         yield bad("list", "somedir", names="somedir")
+    if "report" in COMMANDS:
+        yield bad("report", "text.db", "--html", "r.html", names="text.db")
+        yield bad("report", "mini.db", "--html", "somedir", names="somedir")
+        yield bad("report", "mini.db", "--html", "nodir/r.html", names="nodir")
+        yield bad("report", "mini.db", "--campaign", "-1", "--html", "r.html", names="--campaign")
     # The reader is gone before the first byte: every write hits a closed pipe, deterministically.
     for argv in (("--help",), ("status", "mini.db"), ("export", "mini.db", "--csv", "-", "--with-monitor"),
                  ("check", "mini.yaml"), ("fit", "mini.db", "--json", "-", "--quiet", "--no-store"),
                  ("resume", "mini.db"), ("status", "mini.db", "--watch", "0.1"),
-                 ("sim", "serve", "--duration", "0.2"), *((("list", "mini.db"),) if "list" in COMMANDS else ())):
+                 ("sim", "serve", "--duration", "0.2"), *((("list", "mini.db"),) if "list" in COMMANDS else ()),
+                 *((("report", "mini.db", "--html", "mini.html"),) if "report" in COMMANDS else ())):
         yield Case(argv, closed_stdout=True)
 
 
