@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import labrunner
-from labrunner.report_html import SECTIONS
+from labrunner.report_html import SECTIONS, ReportResult
 
 TINY = """\
 name: tiny
@@ -100,14 +100,14 @@ def _check_self_contained(text: str, page: Page) -> None:
 
 
 @pytest.fixture(scope="module")
-def quick_report(quick: Path) -> tuple[Path, labrunner.api.ReportResult]:
+def quick_report(quick: Path) -> tuple[Path, ReportResult]:
     t0 = time.perf_counter()
     result = labrunner.report(quick / "quick.db", html=quick / "quick.html")
     assert time.perf_counter() - t0 < 20  # ~4 s here; generous for a loaded CI machine
     return quick / "quick.html", result
 
 
-def test_quick_report_has_every_section(quick_report: tuple[Path, labrunner.api.ReportResult]) -> None:
+def test_quick_report_has_every_section(quick_report: tuple[Path, ReportResult]) -> None:
     path, result = quick_report
     text = path.read_text()
     page = Page(text)
@@ -163,7 +163,7 @@ def _chromium(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed here (.ci/run installs Debian's)")
-def test_quick_report_renders_in_chromium(quick_report: tuple[Path, labrunner.api.ReportResult],
+def test_quick_report_renders_in_chromium(quick_report: tuple[Path, ReportResult],
                                           tmp_path: Path) -> None:
     import matplotlib.image
 
