@@ -142,6 +142,24 @@ def test_paused_and_unfitted_campaigns_say_why(stopped: Path) -> None:
     assert not any(f"fig-{f}" in text for f in FIGURES)
 
 
+def test_campaign_without_samples(tmp_path: Path) -> None:
+    """A lab that does not answer: the campaign pauses in preflight with no sample; the report says so."""
+    (tmp_path / "tiny.yaml").write_text(TINY.format(fit="true"))
+    (tmp_path / "nowhere.yaml").write_text(
+        "name: nowhere\n"  # closed loopback ports: refused at once, no network needed
+        "chamber: {transport: tcp, host: 127.0.0.1, port: 1, device_id: 1, timeout_s: 0.2, retries: 0}\n"
+        "table: {port: 'socket://127.0.0.1:2'}\nimu: {port: 'socket://127.0.0.1:3', rate_hz: 50}\n")
+    run = labrunner.run(tmp_path / "tiny.yaml", lab=tmp_path / "nowhere.yaml", db=tmp_path / "n.db")
+    assert run.state == "paused" and run.samples == 0
+    result = labrunner.report(tmp_path / "n.db", html=tmp_path / "n.html")
+    assert set(result.explained) == {"overview", "calibration", "diagnosis"} and result.figures == []
+    text = (tmp_path / "n.html").read_text()
+    page = Page(text)
+    assert set(SECTIONS) <= page.ids and "fig-overview" not in page.ids
+    assert "No overview: no samples recorded yet" in text and "Last warning or fault: " in text
+    assert page.rows["steps-table"] == 12 * 3 + 1 and text.count("<td>planned</td>") == 36
+
+
 def test_cli_refuses_overwriting(stopped: Path) -> None:
     def report(*argv: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run([sys.executable, "-m", "labrunner", "report", "s.db", *argv], cwd=stopped,
