@@ -72,7 +72,7 @@ def _headline(campaign: Campaign, events: pd.DataFrame, steps: pd.DataFrame, fit
         _card(f"{done}/{len(steps)}", "steps recorded"),
         _card(f"{int(steps.n_samples.fillna(0).sum()):,}", "samples"),
         _card(str(faults), f"faults ({recoveries} recoveries)"),
-        _card(str(int((steps.attempts > 1).sum())), "steps recorded again"),
+        _card(str(int((steps.attempts > 1).sum())), "re-recorded steps"),
         _card(info.mode, "mode"),
     ]
     lines = []
