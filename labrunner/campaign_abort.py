@@ -48,7 +48,7 @@ def abort_campaign(db: str | Path, *, campaign: int | None = None, wait_s: float
         info = store.campaign(cid)
         if info.status in ("done", "aborted"):
             return AbortResult(cid, "already", info.status, info.status)
-        if info.status == "running" and process_alive(info.pid, info.host):
+        if info.status == "running" and process_alive(info.pid, info.host, info.lease_wall):
             store.request(cid, "abort")
             say(f"abort requested; waiting for process {info.pid} to bring the lab to its safe state...")
             deadline = time.time() + wait_s

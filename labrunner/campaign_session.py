@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from labrunner.database import process_alive
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
 from labrunner.sim_config import has_fault_plan, sim_config_dict
@@ -90,7 +89,7 @@ class Session:
 
     def __init__(self, store: Store, campaign_id: int, procedure: Procedure, *, mode: str, db: Path,
                  lab: Lab | None = None, runner: CampaignRunner | None = None, status_before: str = "running",
-                 next_step: int | None = 0) -> None:
+                 next_step: int | None = 0, lease_note: str | None = None) -> None:
         self.store = store
         self.campaign_id = campaign_id
         self.procedure = procedure
@@ -100,6 +99,7 @@ class Session:
         self.runner = runner
         self.status_before = status_before
         self.next_step = next_step
+        self.lease_note = lease_note  # how the lease was taken from a previous holder, if it was
 
     @property
     def already_done(self) -> bool:
@@ -151,6 +151,10 @@ class Session:
 
     def close(self) -> None:
         self._close_lab()
+        try:
+            self.store.release_lease(self.campaign_id)
+        except Exception as exc:  # the store failed: the lease goes stale, the same-host rule frees it
+            log.warning("campaign %d: lease not released: %s", self.campaign_id, exc)
         self.store.close()
 
     def __enter__(self) -> Session:
@@ -265,6 +269,7 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
     end-of-run fit's directory must be empty or new unless `force`."""
     from labrunner.lab import lab_config_from_dict, real_lab
     from labrunner.procedure import Procedure, load_procedure
+    from labrunner.runner.lease import new_token
     from labrunner.store import Store
 
     db = Path(db)
@@ -302,7 +307,8 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
                        force)
         cid = store.new_campaign(name=proc.name, procedure_text=proc.text, procedure_path=proc_path,
                                  procedure_sha256=proc.sha256, lab_config=lab_dict, mode="sim" if sim else "lab",
-                                 sim_config=sim_dict, clock_t0=the_lab.clock.now(), plan=proc.steps())
+                                 sim_config=sim_dict, clock_t0=the_lab.clock.now(), plan=proc.steps(),
+                                 lease_token=new_token())
         auto = AUTO_RESUME_S if (sim and has_fault_plan(sim_dict) and auto_resume) else None
         runner = _runner(proc, the_lab, store, cid, fit_dir(db, fit_out, cid), sim_dict, auto)
     except BaseException:
@@ -314,24 +320,40 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
 
 
 def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path | LabConfig | None = None,
-                 fit_out: str | Path | None = None, force: bool = False) -> Session:
+                 fit_out: str | Path | None = None, force: bool = False, take_over: bool = False) -> Session:
     """Continue a paused, aborted, failed or killed campaign from its first missing step. A complete
-    campaign gives a session with nothing to run (`already_done`)."""
+    campaign gives a session with nothing to run (`already_done`).
+
+    The campaign's lease is taken before any instrument is built or connected: another process
+    holding it refuses the resume (`runner.lease.LeaseRefused`, naming it); a stale one (no heartbeat
+    for `runner.lease.STALE_AFTER_S`) is taken only with `take_over`."""
     from labrunner.lab import lab_config_from_dict, real_lab
     from labrunner.procedure import parse_procedure
+    from labrunner.runner.lease import acquire
     from labrunner.store import Store
 
     db = Path(db)
     store = Store.open_existing(db)
     the_lab: Lab | None = None
+    held: int | None = None  # the campaign whose lease this call took
     try:
         cid = store.resolve(campaign)
         info = store.campaign(cid)
         procedure = parse_procedure(info.procedure_text, f"{db} (campaign {cid} procedure)")
         if info.status == "done":
             return Session(store, cid, procedure, mode=info.mode, db=db, status_before="done", next_step=None)
-        if info.status == "running" and process_alive(info.pid, info.host):
-            raise UserError(f"campaign {cid} is running (process {info.pid}); use labrunner status or abort")
+        decision = acquire(store, cid, take_over=take_over)
+        held = cid
+        lease_note = None
+        if decision.previous is not None:
+            lease_note = (f"lease of campaign {cid} taken over from {decision.previous}" if decision.reason ==
+                          "taken over" else f"lease of campaign {cid} taken: its holder ({decision.previous}) "
+                          "is gone from this host, so it counts as stale at once")
+        info = store.campaign(cid)  # as the lease found it (another process may have ended it meanwhile)
+        if info.status == "done":
+            store.release_lease(cid)
+            held = None
+            return Session(store, cid, procedure, mode=info.mode, db=db, status_before="done", next_step=None)
         if fit_out is not None:  # the default directory is this campaign's own: its fit is written again
             _check_fit_dir(procedure, Path(fit_out), db, [lab], force)
         nxt = store.next_step(cid)
@@ -352,8 +374,12 @@ def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path
     except BaseException:
         if the_lab is not None:
             the_lab.close()
-        store.close()
+        try:
+            if held is not None:
+                store.release_lease(held)
+        finally:
+            store.close()
         raise
     log.info("resuming campaign %d (%s) at step %s", cid, info.status, nxt)
     return Session(store, cid, procedure, mode=info.mode, db=db, lab=the_lab, runner=runner,
-                   status_before=info.status, next_step=nxt)
+                   status_before=info.status, next_step=nxt, lease_note=lease_note)

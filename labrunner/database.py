@@ -28,17 +28,14 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-def process_alive(pid: int | None, host: str | None) -> bool:
-    """Whether the process that last ran a campaign is still alive (on this host)."""
-    if not pid or host != os.uname().nodename:
+def process_alive(pid: int | None, host: str | None, heartbeat_wall: float | None = None) -> bool:
+    """Whether the process that last ran a campaign is still alive: on this host, its pid exists; on
+    another host (where no pid can be looked at) its lease's heartbeat is fresh (`runner.lease`)."""
+    from labrunner.runner.lease import holder_alive
+
+    if host != os.uname().nodename and heartbeat_wall is None:
         return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+    return holder_alive(pid, host, heartbeat_wall)
 
 
 @dataclass(frozen=True)
@@ -102,11 +99,12 @@ class CampaignSummary:
     process_alive: bool | None  # of a running campaign: None when it runs on another host (unknowable here)
     heartbeat_wall: float  # wall time of the last heartbeat or status change
     heartbeat_age_s: float  # its age when read
+    lease_held: bool = False  # a process holds the campaign's lease (runner.lease): pid/host name it
 
     @property
     def holder(self) -> str | None:
-        """Who holds a running campaign, e.g. "pid 4242 on lab-pc" (None unless running)."""
-        if self.status != "running" or self.pid is None:
+        """Who holds a running campaign (or its lease), e.g. "pid 4242 on lab-pc" (None otherwise)."""
+        if (self.status != "running" and not self.lease_held) or self.pid is None:
             return None
         return f"pid {self.pid} on {self.host or '?'}"
 
@@ -147,7 +145,8 @@ class Database:
         done = func.coalesce(func.sum(case((steps.c.status == "done", 1), else_=0)), 0)
         samples = func.coalesce(func.sum(case((steps.c.status == "done", steps.c.n_samples), else_=0)), 0)
         query = (select(campaigns.c.id, campaigns.c.name, campaigns.c.status, campaigns.c.mode, campaigns.c.n_steps,
-                        campaigns.c.pid, campaigns.c.host, campaigns.c.updated_wall, done.label("done"),
+                        campaigns.c.pid, campaigns.c.host, campaigns.c.updated_wall, campaigns.c.lease_token,
+                        campaigns.c.lease_wall, done.label("done"),
                         samples.label("samples"))
                  .select_from(campaigns.outerjoin(steps, steps.c.campaign_id == campaigns.c.id))
                  .group_by(campaigns.c.id).order_by(campaigns.c.id))
@@ -160,7 +159,8 @@ class Database:
             campaign_id=int(r.id), name=str(r.name), status=str(r.status), mode=str(r.mode), steps_done=int(r.done),
             steps_total=int(r.n_steps), samples=int(r.samples), pid=r.pid, host=r.host,
             process_alive=(process_alive(r.pid, r.host) if r.status == "running" and r.host == here else None),
-            heartbeat_wall=float(r.updated_wall), heartbeat_age_s=max(0.0, now - float(r.updated_wall)))
+            heartbeat_wall=float(r.updated_wall), heartbeat_age_s=max(0.0, now - float(r.updated_wall)),
+            lease_held=r.lease_token is not None)
             for r in rows]
 
     def summary(self) -> pd.DataFrame:
@@ -229,8 +229,21 @@ class Campaign:
     def events(self) -> pd.DataFrame:
         """Every event (transitions, records, faults, recoveries, operator actions) in order; `detail` decoded."""
         frame = self._store.events_frame(self.id)
-        frame["detail"] = [json.loads(d) if isinstance(d, str) and d else None for d in frame["detail"]]
+        frame["detail"] = [self._detail(d, step) for d, step in zip(frame["detail"], frame["step_idx"])]
         return frame
+
+    def _detail(self, value: Any, step: Any) -> Any:
+        """An event's JSON detail, or `StoreDamage` naming campaign, table and step when it is not JSON."""
+        if not isinstance(value, str) or not value:
+            return None
+        try:
+            return json.loads(value)
+        except ValueError as exc:
+            from labrunner.store import StoreDamage
+
+            at = "" if step is None or step != step else f", step {int(step)}"
+            raise StoreDamage(f"{self.db.path}: campaign {self.id}, table events{at}: column detail is not JSON "
+                              f"({exc}); the store is damaged") from None
 
     def samples(self, include_monitor: bool = False) -> pd.DataFrame:
         """Samples in the campaign CSV columns, time-ordered, with per row `kind` (record/monitor), the
@@ -296,7 +309,8 @@ class Campaign:
                 eta, estimated = self.procedure().estimated_duration_s(), True
         return CampaignStatus(
             campaign_id=self.id, name=info.name, db=self.db.path, status=info.status,
-            process_alive=process_alive(info.pid, info.host), mode=info.mode, state=state, steps_done=done,
+            process_alive=process_alive(info.pid, info.host, info.lease_wall), mode=info.mode, state=state,
+            steps_done=done,
             steps_total=total, samples=int(stp.n_samples.fillna(0).sum()), lab_time_s=lab_time, next_step=nxt,
             eta_s=eta, eta_estimated=estimated, updated_wall=info.updated_wall,
             faults=int(trans.kind.isin(["fault", "interlock"]).sum()), rerecorded_steps=int((stp.attempts > 1).sum()),

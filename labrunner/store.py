@@ -82,7 +82,8 @@ class StoreError(UserError):
 # What SQLite says of a file that is not a labrunner store (another file, an empty or another database).
 _NOT_A_STORE = ("file is not a database", "no such table")
 
-SCHEMA_VERSION = 1
+# 2: the campaign lease (campaigns.lease_token, lease_wall). A version-1 store is migrated when opened.
+SCHEMA_VERSION = 2
 # Columns `samples_frame(with_steps=True)` adds to the campaign CSV columns.
 STEP_COLUMNS = ("kind", "state", "step_idx", "setpoint_c", "rate_cmd_dps")
 metadata = MetaData()
@@ -106,6 +107,10 @@ campaigns = Table(
     Column("pid", Integer),
     Column("host", String),
     Column("n_steps", Integer, nullable=False),
+    # The campaign lease: one writer per campaign. The holder's token (NULL: free), and the wall time
+    # of its last renewal (the heartbeat); pid and host above name the holder.
+    Column("lease_token", String),
+    Column("lease_wall", Float),
 )
 
 steps = Table(
@@ -237,6 +242,56 @@ def _f64(a: np.ndarray) -> bytes:
     return np.ascontiguousarray(a, dtype="<f8").tobytes()
 
 
+def _block_from_row(row: Any, path: Path) -> SampleBlock:
+    """A stored sample block decoded, or `StoreDamage` naming its campaign, step and the blob that does
+    not hold what its row says (a short or garbled blob would otherwise be a reshape error)."""
+    n, enc = row["n"], row["encoding"]
+    where = (f"{path}: campaign {row['campaign_id']}, table sample_blocks, "
+             + (f"step {row['step_idx']}" if row["step_idx"] is not None else f"{row['kind']} block at "
+                f"t={row['t0_s']:.1f} s") + f" (block {row['id']})")
+    if enc not in ("i16", "f32") or not isinstance(n, int) or n < 0:
+        raise StoreDamage(f"{where}: encoding {enc!r} with {n!r} samples is not one labrunner writes; "
+                          "the store is damaged")
+    width = 2 if enc == "i16" else 4
+    expected = {"counter": 4 * n, "accel_g": 3 * n * width, "gyro_dps": 3 * n * width, "temp_c": n * width}
+    for column, size in expected.items():
+        raw = row[column]
+        if not isinstance(raw, bytes) or len(raw) != size:
+            got = len(raw) if isinstance(raw, bytes) else type(raw).__name__
+            raise StoreDamage(f"{where}: column {column} holds {got} bytes, {n} samples need {size}; "
+                              "the store is damaged")
+    for column in ("chamber", "table"):
+        raw = row[column]
+        if not isinstance(raw, bytes) or len(raw) % 16:
+            raise StoreDamage(f"{where}: column {column} is not (time, value) float64 pairs; the store is damaged")
+    if enc == "i16" and not all(isinstance(row[c], float) and row[c] > 0 for c in ("accel_lsb", "gyro_lsb",
+                                                                                     "temp_lsb")):
+        raise StoreDamage(f"{where}: int16 samples without their LSB sizes; the store is damaged")
+    lsb = (row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]) if enc == "i16" else None
+    return SampleBlock(
+        kind=row["kind"], step_idx=row["step_idx"], run=row["run"], orientation=row["orientation"],
+        t0_s=row["t0_s"], rate_hz=row["rate_hz"],
+        counter=np.frombuffer(row["counter"], dtype="<i4").astype(np.int64),
+        accel_g=_decode(row["accel_g"], enc, row["accel_lsb"], (n, 3)),
+        gyro_dps=_decode(row["gyro_dps"], enc, row["gyro_lsb"], (n, 3)),
+        temp_c=_decode(row["temp_c"], enc, row["temp_lsb"], (n,)),
+        chamber=np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2),
+        table=np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2),
+        lsb=lsb,
+    )
+
+
+def _json(value: str | None, path: Path, campaign_id: int, table: str, column: str) -> Any:
+    """A stored JSON column decoded, or `StoreDamage` naming the campaign, table and column."""
+    if value is None:
+        return None
+    try:
+        return json.loads(value)
+    except (ValueError, TypeError) as exc:
+        raise StoreDamage(f"{path}: campaign {campaign_id}, table {table}: column {column} is not JSON ({exc}); "
+                          "the store is damaged") from None
+
+
 @dataclass
 class CampaignInfo:
     id: int
@@ -256,6 +311,32 @@ class CampaignInfo:
     pid: int | None
     host: str | None
     n_steps: int
+    lease_token: str | None = None
+    lease_wall: float | None = None
+
+
+@dataclass(frozen=True)
+class LeaseHolder:
+    """Who holds a campaign's lease, as read inside the transaction that may take it."""
+
+    campaign_id: int
+    token: str | None  # None: the lease is free
+    pid: int | None
+    host: str | None
+    heartbeat_wall: float | None  # wall time of the holder's last renewal
+
+
+class LeaseLost(StoreError):
+    """This process's lease on a campaign was taken over: it must not write to the campaign again."""
+
+    def __init__(self, path: Path, campaign_id: int) -> None:
+        self.path = path
+        self.cause = f"the lease on campaign {campaign_id} was taken over by another process"
+        UserError.__init__(self, f"{path}: {self.cause}; this process stops writing to it")
+
+
+class StoreDamage(UserError):
+    """The database is damaged; the message says where (campaign, table, step) and what."""
 
 
 def _inserted_id(result: CursorResult[Any]) -> int:
@@ -279,6 +360,10 @@ class Store:
     def __init__(self, engine: Engine, path: Path) -> None:
         self.engine = engine
         self.path = path
+        # Leases this Store holds: campaign id -> token. Writes of a held campaign's samples and its
+        # heartbeat check the token in the database, so a process whose lease was taken over stops.
+        self.leases: dict[int, str] = {}
+        self.lost: set[int] = set()
 
     # --- opening ---------------------------------------------------------------------------
 
@@ -328,11 +413,129 @@ class Store:
             # A store that cannot be opened (a full disk for its -shm, a read-only directory, a damaged
             # file) is named as such, not mistaken for a foreign file.
             raise StoreError(p, "open", exc) from exc
-        if version is None or int(version) != SCHEMA_VERSION:
+        try:
+            number = int(version) if version is not None else None
+        except ValueError:
+            number = None
+        if number == 1:
+            cls._migrate_from_1(engine, p)
+        elif number != SCHEMA_VERSION:
             engine.dispose()
-            raise UserError(f"{p}: database schema version {version}, this labrunner reads {SCHEMA_VERSION}")
+            if number is not None and number > SCHEMA_VERSION:
+                raise UserError(f"{p}: database schema version {number} is newer than this labrunner's "
+                                f"({SCHEMA_VERSION}): use the labrunner that wrote it, or a newer one")
+            raise StoreDamage(f"{p}: table labrunner_meta: schema version {version!r} is not one labrunner "
+                              f"wrote (this labrunner reads {SCHEMA_VERSION}): the store is damaged")
+        store = cls(engine, p)
+        try:
+            store.quick_check()
+        except BaseException:
+            engine.dispose()
+            raise
         log.debug("store %s opened", p)
-        return cls(engine, p)
+        return store
+
+    @staticmethod
+    def _migrate_from_1(engine: Engine, p: Path) -> None:
+        """Schema 1 -> 2: add the lease columns. A campaign a version-1 process may still be running keeps
+        that process as its holder (heartbeat: its last update), so the lease rules apply to it too."""
+        try:
+            with engine.begin() as conn:
+                for column in ("lease_token VARCHAR", "lease_wall FLOAT"):
+                    conn.execute(text(f"ALTER TABLE campaigns ADD COLUMN {column}"))
+                conn.execute(update(campaigns).where(campaigns.c.status == "running", campaigns.c.pid.is_not(None))
+                             .values(lease_token="schema-1", lease_wall=campaigns.c.updated_wall))
+                conn.execute(update(meta).where(meta.c.key == "schema_version").values(value=str(SCHEMA_VERSION)))
+        except _STORE_FAILURES as exc:
+            engine.dispose()
+            raise UserError(f"{p}: database schema version 1 must be migrated to {SCHEMA_VERSION} (a column is "
+                            f"added), which failed: {getattr(exc, 'orig', None) or exc}; open it once where it can "
+                            "be written (labrunner list DB does it)") from None
+        log.info("store %s migrated from schema 1 to %d (campaign lease)", p, SCHEMA_VERSION)
+
+    # --- damage ------------------------------------------------------------------------------
+
+    def _pragma_check(self, pragma: str) -> list[str]:
+        """What SQLite's `quick_check`/`integrity_check` finds (empty: nothing), up to 20 lines."""
+        if self.engine.dialect.name != "sqlite":
+            return []  # other servers keep their own page checksums
+        try:
+            with self.engine.connect() as conn:
+                lines = [str(r) for r in conn.exec_driver_sql(f"PRAGMA {pragma}(20)").scalars()]
+        except _STORE_FAILURES as exc:
+            return [str(getattr(exc, "orig", None) or exc)]
+        return [] if lines == ["ok"] else lines
+
+    def quick_check(self) -> None:
+        """Raise `StoreDamage` when SQLite's quick_check finds damaged pages (run on every open: it reads
+        every page but skips the index-content comparison of integrity_check)."""
+        problems = self._pragma_check("quick_check")
+        if problems:
+            raise StoreDamage(f"{self.path}: the database is damaged: {self._locate_pages()}"
+                              f"PRAGMA quick_check: {problems[0]}"
+                              f"{f' (and {len(problems) - 1} more)' if len(problems) > 1 else ''}; "
+                              f"run labrunner check --db {self.path}")
+
+    def _locate_pages(self) -> str:
+        """Which tables cannot be read through (the damaged pages' owners), as 'table T, campaign C: '."""
+        found = []
+        for table in metadata.sorted_tables:
+            last = None
+            try:
+                with self.engine.connect() as conn:
+                    has_campaign = "campaign_id" in table.c
+                    cols = [table.c.campaign_id] if has_campaign else [next(iter(table.c))]
+                    for row in conn.execute(select(*cols, *[c for c in table.c if c not in cols])):
+                        last = row[0]
+            except _STORE_FAILURES:
+                where = f"table {table.name}"
+                if last is not None and "campaign_id" in table.c:
+                    where += f", after a row of campaign {last}"
+                found.append(where)
+        return ("in " + "; ".join(found) + ": ") if found else ""
+
+    def damage_report(self) -> list[str]:
+        """Everything `labrunner check --db` finds: PRAGMA integrity_check, then every stored JSON column
+        and sample blob decoded. One line per problem, each naming campaign, table and step."""
+        problems = [f"PRAGMA integrity_check: {line}" for line in self._pragma_check("integrity_check")]
+        if problems:
+            where = self._locate_pages()
+            if where:
+                problems.append(f"damaged pages {where.rstrip(': ')}")
+        json_columns = {campaigns: ("lab_config", "sim_config"), events: ("detail",),
+                        fits: ("provenance", "result")}
+        for table, columns in json_columns.items():
+            key = table.c.id
+            camp = table.c.id if table is campaigns else table.c.campaign_id
+            step_col = table.c.step_idx if "step_idx" in table.c else None
+            q = select(key, camp, *([step_col] if step_col is not None else []), *[table.c[c] for c in columns])
+            try:
+                with self.engine.connect() as conn:
+                    for row in conn.execute(q).mappings():
+                        for c in columns:
+                            value = row[c]
+                            if value is None:
+                                continue
+                            try:
+                                json.loads(value)
+                            except (ValueError, TypeError) as exc:
+                                step = row.get("step_idx")
+                                problems.append(
+                                    f"campaign {row[camp.name]}, table {table.name}, row {row['id']}"
+                                    f"{f', step {step}' if step is not None else ''}: column {c} is not JSON "
+                                    f"({exc})")
+            except _STORE_FAILURES as exc:
+                problems.append(f"table {table.name} cannot be read: {getattr(exc, 'orig', None) or exc}")
+        try:
+            with self.engine.connect() as conn:
+                for row in conn.execute(select(sample_blocks)).mappings():
+                    try:
+                        _block_from_row(row, self.path)
+                    except StoreDamage as exc:
+                        problems.append(str(exc).removeprefix(f"{self.path}: "))
+        except _STORE_FAILURES as exc:
+            problems.append(f"table sample_blocks cannot be read: {getattr(exc, 'orig', None) or exc}")
+        return problems
 
     def close(self) -> None:
         self.engine.dispose()
@@ -368,7 +571,8 @@ class Store:
 
     def new_campaign(self, *, name: str, procedure_text: str, procedure_path: str | None, procedure_sha256: str,
                      lab_config: dict[str, Any], mode: str, sim_config: dict[str, Any] | None, clock_t0: float,
-                     plan: Sequence[Any]) -> int:
+                     plan: Sequence[Any], lease_token: str | None = None) -> int:
+        """A new campaign, its lease held by `lease_token` (this process) from the start if given."""
         now = time.time()
         with self.transaction() as conn:
             cid = _inserted_id(conn.execute(insert(campaigns).values(
@@ -377,11 +581,13 @@ class Store:
                 sim_config=json.dumps(sim_config) if sim_config is not None else None,
                 software_version=__version__, status="running", created_wall=now, updated_wall=now,
                 clock_t0=clock_t0, clock_last=clock_t0, pid=os.getpid(), host=os.uname().nodename,
-                n_steps=len(plan))))
+                n_steps=len(plan), lease_token=lease_token, lease_wall=now if lease_token else None)))
             conn.execute(insert(steps), [
                 {"campaign_id": cid, "idx": s.index, "orientation": s.orientation, "temperature_c": s.temperature_c,
                  "rate_dps": s.rate_dps, "status": "planned", "attempts": 0} for s in plan])
             conn.execute(insert(control).values(campaign_id=cid, request=None))
+        if lease_token:
+            self.leases[int(cid)] = lease_token
         log.info("campaign %d %r created in %s: %d steps (%s)", cid, name, self.path, len(plan), mode)
         return int(cid)
 
@@ -406,8 +612,8 @@ class Store:
         if row is None:
             raise UserError(f"{self.path}: no campaign {campaign_id}")
         d = dict(row)
-        d["lab_config"] = json.loads(d["lab_config"])
-        d["sim_config"] = json.loads(d["sim_config"]) if d["sim_config"] else None
+        d["lab_config"] = _json(d["lab_config"], self.path, campaign_id, "campaigns", "lab_config")
+        d["sim_config"] = _json(d["sim_config"] or None, self.path, campaign_id, "campaigns", "sim_config")
         return CampaignInfo(**d)
 
     def set_status(self, campaign_id: int, status: str, *, clock_last: float | None = None,
@@ -417,14 +623,97 @@ class Store:
             values["clock_last"] = clock_last
         if pid != "keep":
             values["pid"] = pid
+        self._not_lost(campaign_id)
         with self.transaction() as conn:
             conn.execute(update(campaigns).where(campaigns.c.id == campaign_id).values(**values))
         log.info("campaign %d: status %s", campaign_id, status)
 
     def heartbeat(self, campaign_id: int, clock_now: float) -> None:
+        """The running process is alive; renews its lease (`LeaseLost` if another process took it)."""
+        self._not_lost(campaign_id)
         with self.transaction() as conn:
+            now = time.time()
+            self._renew(conn, campaign_id, now)
             conn.execute(update(campaigns).where(campaigns.c.id == campaign_id).values(
-                updated_wall=time.time(), clock_last=clock_now))
+                updated_wall=now, clock_last=clock_now))
+
+    # --- the campaign lease --------------------------------------------------------------------
+
+    @contextmanager
+    def _exclusive(self) -> Iterator[Connection]:
+        """A transaction that holds the database's write lock from its first statement.
+
+        SQLite's default (deferred) transaction would let two processes both read a free lease before
+        either writes; BEGIN IMMEDIATE takes the write lock first, so the second waits (busy_timeout)
+        and then reads what the first wrote. Other servers lock the row (SELECT ... FOR UPDATE)."""
+        with self._guard("lock"), self.engine.connect() as conn:
+            if self.engine.dialect.name == "sqlite":
+                conn.exec_driver_sql("BEGIN IMMEDIATE")
+            try:
+                yield conn
+            except BaseException:
+                conn.rollback()
+                raise
+            conn.commit()
+
+    def take_lease(self, campaign_id: int, token: str, decide: Any) -> LeaseHolder:
+        """Take the campaign's lease for `token` if `decide(holder)` allows it (it raises to refuse).
+
+        Read and write happen in one exclusive transaction, and the write is conditional on the token
+        read (a compare-and-swap: rowcount 1 or nothing changed), so two processes cannot both win.
+        Returns the holder it replaced."""
+        with self._exclusive() as conn:
+            row = conn.execute(select(campaigns.c.lease_token, campaigns.c.pid, campaigns.c.host,
+                                      campaigns.c.lease_wall).where(campaigns.c.id == campaign_id)
+                               .with_for_update()).one_or_none()
+            if row is None:
+                raise UserError(f"{self.path}: no campaign {campaign_id}")
+            holder = LeaseHolder(campaign_id, row.lease_token, row.pid, row.host, row.lease_wall)
+            decide(holder)
+            now = time.time()
+            same = (campaigns.c.lease_token.is_(None) if holder.token is None
+                    else campaigns.c.lease_token == holder.token)
+            taken = conn.execute(update(campaigns).where(campaigns.c.id == campaign_id, same).values(
+                lease_token=token, lease_wall=now, updated_wall=now, pid=os.getpid(), host=os.uname().nodename))
+            if taken.rowcount != 1:  # pragma: no cover - the exclusive transaction makes this unreachable
+                raise UserError(f"{self.path}: campaign {campaign_id}: another process took the lease first")
+        self.leases[campaign_id] = token
+        self.lost.discard(campaign_id)
+        log.info("campaign %d: lease taken (%s)", campaign_id, token[:8])
+        return holder
+
+    def release_lease(self, campaign_id: int) -> None:
+        """Give up this process's lease (the campaign stays as it is); a lease taken over stays the taker's."""
+        token = self.leases.pop(campaign_id, None)
+        if token is None:
+            return
+        with self.transaction() as conn:
+            conn.execute(update(campaigns).where(campaigns.c.id == campaign_id, campaigns.c.lease_token == token)
+                         .values(lease_token=None, lease_wall=None))
+        log.info("campaign %d: lease released", campaign_id)
+
+    def lease_holder(self, campaign_id: int) -> LeaseHolder:
+        with self.reading() as conn:
+            row = conn.execute(select(campaigns.c.lease_token, campaigns.c.pid, campaigns.c.host,
+                                      campaigns.c.lease_wall).where(campaigns.c.id == campaign_id)).one()
+        return LeaseHolder(campaign_id, row.lease_token, row.pid, row.host, row.lease_wall)
+
+    def _renew(self, conn: Connection, campaign_id: int, now: float) -> None:
+        """Inside a write of a held campaign: renew the lease, or raise `LeaseLost` (the write rolls back)."""
+        token = self.leases.get(campaign_id)
+        if token is None:
+            return  # a writer without a lease (tests driving a runner directly, labrunner abort)
+        kept = conn.execute(update(campaigns).where(campaigns.c.id == campaign_id, campaigns.c.lease_token == token)
+                            .values(lease_wall=now))
+        if kept.rowcount != 1:
+            self.leases.pop(campaign_id, None)
+            self.lost.add(campaign_id)
+            log.warning("campaign %d: lease lost to another process", campaign_id)
+            raise LeaseLost(self.path, campaign_id)
+
+    def _not_lost(self, campaign_id: int) -> None:
+        if campaign_id in self.lost:
+            raise LeaseLost(self.path, campaign_id)
 
     # --- steps and samples ---------------------------------------------------------------------
 
@@ -493,6 +782,7 @@ class Store:
         assert block.kind == "record" and block.step_idx is not None
         chamber_mean = float(np.mean(block.chamber[:, 1])) if block.chamber.size else None
         with self.transaction() as conn:
+            self._renew(conn, campaign_id, time.time())
             conn.execute(insert(sample_blocks), [self._block_row(campaign_id, block)])
             conn.execute(update(steps).where(steps.c.campaign_id == campaign_id, steps.c.idx == block.step_idx).values(
                 status="done", run=block.run, t_start=block.t0_s, t_end=t_end, n_samples=len(block),
@@ -505,6 +795,7 @@ class Store:
 
     def save_monitor(self, campaign_id: int, block: SampleBlock) -> None:
         with self.transaction() as conn:
+            self._renew(conn, campaign_id, time.time())
             conn.execute(insert(sample_blocks), [self._block_row(campaign_id, block)])
 
     # --- events and control ----------------------------------------------------------------------
@@ -520,6 +811,7 @@ class Store:
     def event(self, campaign_id: int, t_s: float, kind: str, message: str, *, state: str | None = None,
               step_idx: int | None = None, detail: dict[str, Any] | None = None, wall: float | None = None) -> None:
         """Log one event; `wall` is when it happened if it is written later (default: now)."""
+        self._not_lost(campaign_id)
         with self.transaction() as conn:
             self._event(conn, campaign_id, t_s, kind, message, state=state, step_idx=step_idx, detail=detail,
                         wall=wall)
@@ -530,6 +822,7 @@ class Store:
         Each row has the keyword arguments of `event` (t_s, kind, message, state, step_idx, detail, wall)."""
         if not rows:
             return
+        self._not_lost(campaign_id)
         with self.transaction() as conn:
             for row in rows:
                 self._event(conn, campaign_id, **row)
@@ -592,19 +885,7 @@ class Store:
              .order_by(sample_blocks.c.t0_s, sample_blocks.c.id))
         with self.reading() as conn:
             for row in conn.execute(q).mappings():
-                n, enc = row["n"], row["encoding"]
-                lsb = (row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]) if enc == "i16" else None
-                yield SampleBlock(
-                    kind=row["kind"], step_idx=row["step_idx"], run=row["run"], orientation=row["orientation"],
-                    t0_s=row["t0_s"], rate_hz=row["rate_hz"],
-                    counter=np.frombuffer(row["counter"], dtype="<i4").astype(np.int64),
-                    accel_g=_decode(row["accel_g"], enc, row["accel_lsb"], (n, 3)),
-                    gyro_dps=_decode(row["gyro_dps"], enc, row["gyro_lsb"], (n, 3)),
-                    temp_c=_decode(row["temp_c"], enc, row["temp_lsb"], (n,)),
-                    chamber=np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2),
-                    table=np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2),
-                    lsb=lsb,
-                )
+                yield _block_from_row(row, self.path)
 
     def samples_frame(self, campaign_id: int, include_monitor: bool = False, with_steps: bool = False,
                       remount_c: float | None = None) -> pd.DataFrame:
@@ -708,4 +989,4 @@ def _interp_readings(t: np.ndarray, readings: np.ndarray, default: float = float
     return np.interp(t, readings[:, 0], readings[:, 1])
 
 
-__all__ = ["CampaignInfo", "SampleBlock", "Store", "StoreError"]
+__all__ = ["CampaignInfo", "LeaseHolder", "LeaseLost", "SampleBlock", "Store", "StoreDamage", "StoreError"]

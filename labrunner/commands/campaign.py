@@ -67,6 +67,9 @@ examples:
     res.add_argument("--fit-out", type=Path, default=None, metavar="DIR",
                      help="directory for the fitted models (default: next to the database, <db>_fit/campaign-<id>/)")
     res.add_argument("--force", action="store_true", help="let the end-of-run fit write into a non-empty --fit-out")
+    res.add_argument("--take-over", action="store_true",
+                     help="take the campaign's lease from a holder whose last heartbeat is more than 60 s old "
+                          "(make sure that process is stopped first); a live holder is always refused")
     res.add_argument("--quiet", action="store_true", help="no progress bar")
     res.set_defaults(func=cmd_resume)
 
@@ -162,7 +165,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_resume(args: argparse.Namespace) -> int:
     with api.start_resume(args.db, campaign=args.campaign, lab=args.lab, fit_out=args.fit_out,
-                          force=args.force) as session:
+                          force=args.force, take_over=args.take_over) as session:
+        if session.lease_note:
+            _tell(session.lease_note)
         if session.already_done:
             print(f"campaign {session.campaign_id} in {args.db} is complete; nothing to resume")
             return 0
