@@ -26,6 +26,8 @@ from labrunner.sim_config import has_fault_plan, sim_config_dict
 if TYPE_CHECKING:
     from labrunner.lab import Lab, LabConfig
     from labrunner.procedure import Procedure, Step
+    from labrunner.runner.pace import PaceEstimator, Schedule
+    from labrunner.runner.soak import SoakProgress
     from labrunner.sequencer import CampaignRunner
     from labrunner.store import Store
 
@@ -37,13 +39,20 @@ AUTO_RESUME_S = 900.0  # a rehearsed operator resumes a fault pause after 15 min
 
 @dataclass(frozen=True)
 class Progress:
-    """Where a running campaign is, as passed to a `progress` callback after every transition and record."""
+    """Where a running campaign is, as passed to a `progress` callback after every transition and record,
+    and after every poll of the chamber while ramping and soaking."""
 
-    steps_done: int
+    steps_done: int  # recorded, this session's and before it (a resumed campaign starts where it was)
     steps_total: int
     state: str
     step: Step | None  # the step being worked on (None when all are recorded)
     lab_time_s: float
+    chamber_c: float | None = None  # the latest chamber reading (None before the first)
+    imu_temp_c: float | None = None  # the latest IMU temperature
+    setpoint_c: float | None = None  # what the chamber is heading for (the remount temperature while mounting)
+    soak: SoakProgress | None = None  # while soaking: spread and offset over the window, time stable
+    lab_left_s: float | None = None  # lab time to the last step: the plan's, corrected by the pace so far
+    eta_s: float | None = None  # wall seconds to the last step at the measured pace (None: not known yet)
 
 
 @dataclass(frozen=True)
@@ -110,6 +119,11 @@ class Session:
         return len(self.procedure.steps())
 
     @property
+    def steps_done(self) -> int:
+        """Steps recorded before this session runs (where a progress bar starts)."""
+        return self.runner.done_steps() if self.runner is not None else self.steps_total
+
+    @property
     def planned_samples(self) -> int:
         return self.steps_total * self.procedure.frames_per_record
 
@@ -134,7 +148,8 @@ class Session:
             return RunResult(campaign_id=self.campaign_id, db=self.db, state="done", exit_code=0, steps_done=total,
                              steps_total=total, already_done=True)
         if progress is not None:
-            runner.progress = lambda r: progress(_snapshot(r))
+            view = LiveView(runner)
+            runner.progress = lambda r: progress(view(r))
         started = time.time()
         try:
             with _signals(self, handle_signals):
@@ -164,9 +179,36 @@ class Session:
         self.close()
 
 
-def _snapshot(runner: CampaignRunner) -> Progress:
-    return Progress(steps_done=runner.done_steps(), steps_total=len(runner.plan), state=str(runner.state),
-                    step=runner.current_step(), lab_time_s=runner.t)
+_HEADING = ("ramping", "soaking", "rate_settling", "recording")  # the chamber's setpoint is the step's
+
+
+class LiveView:
+    """Makes the `Progress` values of one session from its runner: its latest readings, the soak's
+    progress, and the ETA from the pace measured in this session (`labrunner.runner.pace`)."""
+
+    def __init__(self, runner: CampaignRunner) -> None:
+        from labrunner.runner.pace import PaceEstimator, Schedule
+
+        self.schedule: Schedule = Schedule.of(runner.procedure.estimated_step_ends_s())
+        clock = runner.clock
+        # A real or scaled clock runs at a known rate; a virtual one's is what the session shows.
+        known = None if clock.virtual else 1.0 / max(clock.wall_seconds(1.0), 1e-12)
+        self.pace: PaceEstimator = PaceEstimator(self.schedule.total_s, lab_per_wall=known)
+        self._step: int | None = -1  # the step the lab time since `_step_t` counts for
+        self._step_t = 0.0
+
+    def __call__(self, runner: CampaignRunner) -> Progress:
+        t = runner.t
+        if runner.k != self._step:
+            self._step, self._step_t = runner.k, t
+        eta = self.pace.update(time.monotonic(), t, self.schedule.done_s(runner.k, t - self._step_t))
+        step = runner.current_step()
+        state = str(runner.state)
+        setpoint = runner.p.remount_c if state == "mounting" else (
+            step.temperature_c if step is not None and state in _HEADING else None)
+        return Progress(steps_done=runner.done_steps(), steps_total=len(runner.plan), state=state, step=step,
+                        lab_time_s=t, chamber_c=runner.chamber_c, imu_temp_c=runner.imu_temp_c, setpoint_c=setpoint,
+                        soak=runner.soak_progress(), lab_left_s=eta.lab_left_s, eta_s=eta.wall_left_s)
 
 
 def _result(runner: CampaignRunner, db: Path, final: str, wall_s: float) -> RunResult:

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from labrunner.data_source import CampaignData
     from labrunner.discrepancy.diagnose import Diagnosis
     from labrunner.procedure import Procedure
+    from labrunner.runner.soak import SoakProgress
     from labrunner.store import CampaignInfo, Store
 
 log = logging.getLogger(__name__)
@@ -77,10 +78,19 @@ class CampaignStatus:
     faults: int
     rerecorded_steps: int
     recent_events: tuple[Event, ...]
+    chamber_c: float | None = None  # the latest stored chamber reading
+    imu_temp_c: float | None = None  # the latest stored IMU temperature (a record's or a monitor mean)
+    soak: SoakProgress | None = None  # while soaking: from the monitor means stored since the soak began
+    eta_wall_s: float | None = None  # wall time to the last step at this session's measured pace
 
     @property
     def fraction_done(self) -> float:
         return self.steps_done / max(self.steps_total, 1)
+
+    @property
+    def over(self) -> bool:
+        """Nothing runs it any more: it ended (done, paused, aborted, failed) or its process is gone."""
+        return self.status != "running" or not self.process_alive
 
 
 @dataclass(frozen=True)
@@ -297,22 +307,21 @@ class Campaign:
         total = len(stp)
         is_transition = trans.kind == "transition"
         state = str(trans[is_transition].state.iloc[-1]) if is_transition.any() else "idle"
-        lab_time = info.clock_last - info.clock_t0
         pending = stp[stp.status != "done"]
-        nxt, eta, estimated = None, None, False
+        nxt = None
         if not pending.empty:
             row = pending.iloc[0]
             nxt = NextStep(int(row.idx), str(row.orientation), float(row.temperature_c), float(row.rate_dps))
-            if done:
-                eta = lab_time / done * (total - done)  # at the pace so far
-            else:
-                eta, estimated = self.procedure().estimated_duration_s(), True
+        live = _live(store, info, self.procedure(), trans, nxt, running=info.status == "running")
+        lab_time, eta, estimated = live.lab_time_s, live.lab_left_s if nxt is not None else None, done == 0
         return CampaignStatus(
             campaign_id=self.id, name=info.name, db=self.db.path, status=info.status,
             process_alive=process_alive(info.pid, info.host, info.lease_wall), mode=info.mode, state=state,
-            steps_done=done,
-            steps_total=total, samples=int(stp.n_samples.fillna(0).sum()), lab_time_s=lab_time, next_step=nxt,
-            eta_s=eta, eta_estimated=estimated, updated_wall=info.updated_wall,
+            steps_done=done, steps_total=total, samples=int(stp.n_samples.fillna(0).sum()), lab_time_s=lab_time,
+            next_step=nxt,
+            eta_s=eta, eta_estimated=estimated, updated_wall=info.updated_wall, chamber_c=live.chamber_c,
+            imu_temp_c=live.imu_temp_c, soak=live.soak if state == "soaking" else None,
+            eta_wall_s=live.eta_wall_s if nxt is not None else None,
             faults=int(trans.kind.isin(["fault", "interlock"]).sum()), rerecorded_steps=int((stp.attempts > 1).sum()),
             recent_events=tuple(Event(float(e.t_s), str(e.kind), None if e.state is None else str(e.state),
                                       None if e.step_idx is None or e.step_idx != e.step_idx else int(e.step_idx),
@@ -321,3 +330,113 @@ class Campaign:
     def __repr__(self) -> str:
         info = self.info
         return f"<labrunner.Campaign {self.id} '{info.name}' {info.status} in {self.db.path}>"
+
+
+# --- the live view of `labrunner status` ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Live:
+    lab_time_s: float
+    chamber_c: float | None
+    imu_temp_c: float | None
+    soak: SoakProgress | None
+    lab_left_s: float
+    eta_wall_s: float | None
+
+
+def _live(store: Store, info: CampaignInfo, procedure: Procedure, events: pd.DataFrame, nxt: NextStep | None,
+          *, running: bool) -> _Live:
+    """What the progress bar of the process running the campaign shows, read from the store: the latest
+    readings, the soak's progress and the ETA, reckoned as the bar does (`campaign_session.LiveView`)."""
+    import numpy as np
+
+    from labrunner.runner.pace import PaceEstimator, Schedule
+
+    latest = _blocks(store, info.id, latest=True)
+    block_end = max((b.t[-1] for b in latest), default=0.0)
+    # The latest of the heartbeat, the events and the stored samples: a virtual clock stores an hour of
+    # soak as monitor means between two events, and the heartbeat is written every 2 s of wall time.
+    heartbeat = (info.updated_wall, info.clock_last - info.clock_t0)
+    last_event = (float(events.wall.iloc[-1]), float(events.t_s.iloc[-1])) if len(events) else heartbeat
+    lab_time = max(heartbeat[1], last_event[1], block_end)
+    chamber = imu = None
+    if latest:
+        chamber, imu = float(latest[0].chamber[-1]), float(latest[0].imu[-1])
+        imu = imu if np.isfinite(imu) else None
+
+    schedule = Schedule.of(procedure.estimated_step_ends_s())
+    known = None if info.mode == "sim" else float((info.lab_config.get("clock") or {}).get("speed", 1.0))
+    pace = PaceEstimator(schedule.total_s, lab_per_wall=known)
+    starts = events[(events.kind == "transition") & events.message.str.startswith("idle ->")]
+    k = None if nxt is None else nxt.idx
+    if running and len(starts):  # this session's pace, from its start, as the running process's bar
+        first = starts.iloc[-1]
+        step0 = None if first.step_idx != first.step_idx or first.step_idx is None else int(first.step_idx)
+        pace.update(float(first.wall), float(first.t_s), schedule.done_s(step0, 0.0))
+        since = float(first.t_s)
+    else:  # the whole campaign's, for the lab time left only
+        pace.update(info.created_wall, 0.0, 0.0)
+        since = 0.0
+    records = events[(events.kind == "record") & (events.t_s >= since)]
+    step_t = float(records.t_s.iloc[-1]) if len(records) else since
+    wall_now, lab_now = max(heartbeat, last_event)  # a pair taken at one moment, the later of the two
+    eta = pace.update(wall_now, lab_now, schedule.done_s(k, lab_now - step_t))
+
+    soak = None
+    if nxt is not None:
+        soaks = events[(events.kind == "transition") & (events.state == "soaking")]
+        if len(soaks):
+            soak = _stored_soak(store, info.id, procedure, float(soaks.t_s.iloc[-1]), nxt.temperature_c, lab_time)
+    return _Live(lab_time_s=lab_time, chamber_c=chamber, imu_temp_c=imu, soak=soak, lab_left_s=eta.lab_left_s,
+                 eta_wall_s=eta.wall_left_s if running else None)
+
+
+@dataclass(frozen=True)
+class _Readings:
+    """One stored sample block's rows: times, IMU temperatures, and the chamber at those times."""
+
+    t: Any  # numpy arrays, (n,)
+    imu: Any
+    chamber: Any
+
+
+def _blocks(store: Store, campaign_id: int, *, latest: bool = False, since_t: float = 0.0) -> list[_Readings]:
+    """The latest sample block (of either kind), or the monitor blocks from `since_t` on, decoded only as far
+    as the live view needs (times, IMU temperature, chamber): one indexed query, no samples frame."""
+    import numpy as np
+    from sqlalchemy import select
+
+    from labrunner.store import sample_blocks as sb
+
+    q = select(sb.c.t0_s, sb.c.rate_hz, sb.c.n, sb.c.counter, sb.c.encoding, sb.c.temp_lsb, sb.c.temp_c,
+               sb.c.chamber).where(sb.c.campaign_id == campaign_id)
+    q = q.order_by(sb.c.t0_s.desc()).limit(1) if latest else \
+        q.where(sb.c.kind == "monitor", sb.c.t0_s >= since_t).order_by(sb.c.t0_s)
+    out = []
+    with store.reading() as conn:
+        for r in conn.execute(q):
+            counter = np.frombuffer(r.counter, dtype="<i4").astype(float)
+            pairs = np.frombuffer(r.chamber, dtype="<f8").reshape(-1, 2)
+            if not counter.size or not pairs.size:
+                continue
+            if r.encoding == "i16":
+                imu = np.frombuffer(r.temp_c, dtype="<i2") * float(r.temp_lsb)
+            else:
+                imu = np.frombuffer(r.temp_c, dtype="<f4").astype(float)
+            t = r.t0_s + (counter - counter[0]) / r.rate_hz
+            out.append(_Readings(t=t, imu=imu, chamber=np.interp(t, pairs[:, 0], pairs[:, 1])))
+    return out
+
+
+def _stored_soak(store: Store, campaign_id: int, procedure: Procedure, soak_t: float, setpoint_c: float,
+                 lab_time: float) -> SoakProgress | None:
+    """The soak's progress from the monitor means stored since it began (1 s means, where the running
+    process judges its polls: the same window, tolerance and rule, `runner.soak.soak_progress`)."""
+    from labrunner.runner.soak import SoakReading, soak_progress
+
+    soak = procedure.model.soak
+    since = max(soak_t, lab_time - soak.stable_window_s - procedure.model.soak.poll_s)
+    readings = [SoakReading(float(t), float(c), float(i)) for b in _blocks(store, campaign_id, since_t=since)
+                for t, c, i in zip(b.t, b.chamber, b.imu)]
+    return soak_progress(readings, soak, setpoint_c, first_t=soak_t)

@@ -273,26 +273,54 @@ class Procedure:
         tolerance over the window: about tau * ln(window * dT / (tau * tolerance)).
         """
         m = self.model
-        s = m.soak
-        rates = m.rates.values()
-        per_temp = sum(m.settle_s + m.record_s + abs(r) / 100.0 for r in rates)
-
-        def soak(step_c: float) -> float:
-            ramp = abs(step_c) / ramp_c_per_min * 60.0
-            if s.sensor != "imu":
-                return ramp + s.stable_window_s
-            follow = imu_lag_s * math.log(max(s.stable_window_s * max(abs(step_c), s.tolerance_c)
-                                              / (imu_lag_s * s.tolerance_c), 1.0))
-            return ramp + max(follow, s.stable_window_s)
-
         total = 0.0
         for oi, _ in enumerate(self.orientations()):
             prev = m.remount_c
             for temp in self.temperatures_for(oi):
-                total += soak(temp - prev) + per_temp
+                total += self._soak_estimate_s(temp - prev, ramp_c_per_min, imu_lag_s) + self._rates_estimate_s()
                 prev = temp
             total += abs(prev - m.remount_c) / ramp_c_per_min * 60.0 + m.remount_s
         return total
+
+    def estimated_step_ends_s(self, ramp_c_per_min: float = 2.0, imu_lag_s: float = 600.0) -> list[float]:
+        """The same estimate step by step: the lab time at which each record step of `steps()` ends.
+
+        A step's share is what the sequencer does before it: its settle and record, and for the first
+        rate at a temperature the ramp and soak (for an orientation's first step also the remount, the
+        chamber's way to the remount temperature included). After the last step nothing waits on the
+        lab (it parks while fitting), so the last end is `estimated_duration_s` less that last ramp back.
+        The live ETA (`labrunner.runner.pace`) counts progress in these lab seconds, not in steps: a
+        soak takes a hundred times longer than a record.
+        """
+        m = self.model
+        ends: list[float] = []
+        t = 0.0
+        prev = m.remount_c
+        for step in self.steps():
+            if step.temperature_index == 0 and step.rate_index == 0:
+                t += abs(prev - m.remount_c) / ramp_c_per_min * 60.0 + m.remount_s
+                prev = m.remount_c
+            if step.rate_index == 0:
+                t += self._soak_estimate_s(step.temperature_c - prev, ramp_c_per_min, imu_lag_s)
+                prev = step.temperature_c
+            t += m.settle_s + m.record_s + abs(step.rate_dps) / 100.0
+            ends.append(t)
+        return ends
+
+    def _rates_estimate_s(self) -> float:
+        """Settling and recording every rate at one temperature (the table spins up at ~100 deg/s^2)."""
+        m = self.model
+        return sum(m.settle_s + m.record_s + abs(r) / 100.0 for r in m.rates.values())
+
+    def _soak_estimate_s(self, step_c: float, ramp_c_per_min: float, imu_lag_s: float) -> float:
+        """Ramping `step_c` and soaking until stable (see `estimated_duration_s`)."""
+        s = self.model.soak
+        ramp = abs(step_c) / ramp_c_per_min * 60.0
+        if s.sensor != "imu":
+            return ramp + s.stable_window_s
+        follow = imu_lag_s * math.log(max(s.stable_window_s * max(abs(step_c), s.tolerance_c)
+                                          / (imu_lag_s * s.tolerance_c), 1.0))
+        return ramp + max(follow, s.stable_window_s)
 
 def _cross_checks(model: ProcedureModel, positions: dict[tuple[Any, ...], int], source: str) -> list[str]:
     """Checks across sections (temperatures against safety limits, rates against the rate limit)."""

@@ -55,7 +55,7 @@ from labrunner.runner.journal import Journal
 from labrunner.runner.monitor import ImuMonitor
 from labrunner.runner.preflight import check_chamber, check_table
 from labrunner.runner.safe_stop import safe_stop
-from labrunner.runner.soak import SoakWindow, soak_timeout
+from labrunner.runner.soak import SoakProgress, SoakWindow, soak_timeout
 from labrunner.store import SampleBlock, Store, StoreError
 
 log = logging.getLogger(__name__)
@@ -157,6 +157,11 @@ class CampaignRunner:
         self.fault_log = FaultLog(self.stats, self.event, self.event_from_thread)
         self.fault_log.attach(lab.chamber, lab.table, lab.imu)
         self.fault_injector: Any = None  # set by labrunner.fault_plan in dry runs with injected faults
+        # The latest readings the handlers took, for the live view (read, never acted on): nothing is
+        # read from an instrument for a display.
+        self.chamber_c: float | None = None
+        self.imu_temp_c: float | None = None
+        self._soak_window: SoakWindow | None = None
         self.machine = Machine(model=self, states=STATES, transitions=TRANSITIONS, initial="idle",
                                auto_transitions=False, after_state_change="_log_transition", send_event=True)
 
@@ -186,6 +191,18 @@ class CampaignRunner:
 
     def current_step(self) -> Step | None:
         return None if self.k is None else self.plan[self.k]
+
+    def soak_progress(self) -> SoakProgress | None:
+        """How close the soak in progress is to stable (None unless soaking)."""
+        window = self._soak_window
+        return window.progress() if window is not None and self.state == "soaking" else None
+
+    def _saw(self, chamber_c: float | None = None, imu_c: float | None = None) -> None:
+        """Keep the latest readings for the live view."""
+        if chamber_c is not None:
+            self.chamber_c = chamber_c
+        if imu_c is not None and np.isfinite(imu_c):
+            self.imu_temp_c = imu_c
 
     # --- time, events, requests ------------------------------------------------------------
 
@@ -421,6 +438,7 @@ class CampaignRunner:
             raise InstrumentError(lab.imu.name, lab.imu.address, "no frames from the IMU (is it powered and is the "
                                   "baud rate right?)")
         self.event("info", f"IMU streams at {lab.imu.address}; temperature {sample.temp_c:.2f} C")
+        self._saw(imu_c=sample.temp_c)
         self._interlocks(imu_temp=sample.temp_c)
         self._check_requests()
         if self.k is None:
@@ -463,7 +481,7 @@ class CampaignRunner:
     def _do_soaking(self) -> None:
         step = self.step
         s = self.p.soak
-        window = SoakWindow(s, step.temperature_c)
+        window = self._soak_window = SoakWindow(s, step.temperature_c)
         started = self._soak_started if self._soak_started is not None else self.t
         deadline = started + s.max_wait_s
         while True:
@@ -472,6 +490,8 @@ class CampaignRunner:
             imu_t = sample.temp_c if sample is not None else float("nan")
             self._interlocks(chamber_c=pv, imu_temp=imu_t)
             window.add(self.t, pv, imu_t)
+            self._saw(pv, imu_t)
+            self._report()  # the soak's progress, poll by poll
             if window.stable():
                 self.event("info", f"soaked at {step.temperature_c} C: chamber {pv:.2f} C, IMU {imu_t:.2f} C",
                            chamber_c=pv, imu_temp_c=imu_t)
@@ -491,6 +511,8 @@ class CampaignRunner:
         while True:
             pv = self.lab.chamber.read_temperature()
             self._interlocks(chamber_c=pv)
+            self._saw(pv)
+            self._report()  # the chamber on its way, poll by poll
             if abs(pv - target) <= tolerance:
                 return True
             if self.t >= t_end:
@@ -509,6 +531,7 @@ class CampaignRunner:
                                  orientation=self.mounted_orientation)
         if block is not None:
             self.store.save_monitor(self.cid, block)
+            self._saw(float(block.chamber[-1, 1]), float(block.temp_c[-1]))
 
     def _do_rate_settling(self) -> None:
         step = self.step
@@ -543,6 +566,7 @@ class CampaignRunner:
             self._wait(dt)
             remaining -= dt
             chamber.append((self.t, lab.chamber.read_temperature()))
+            self._saw(chamber[-1][1])
             rate = lab.table.velocity()
             table.append((self.t, rate))
             self._interlocks(chamber_c=chamber[-1][1], rate_dps=rate)
@@ -556,6 +580,7 @@ class CampaignRunner:
             return
         if len(rec):
             self._interlocks(imu_temp=float(rec.temp_c.max()))
+            self._saw(imu_c=float(rec.temp_c[-1]))
         block = SampleBlock(kind="record", step_idx=step.index, run=self.run_no, orientation=step.orientation,
                             t0_s=t_first + (rec.counter[0] - (start + 1)) / imu.rate_hz if len(rec) else t_first,
                             rate_hz=imu.rate_hz, counter=rec.counter, accel_g=rec.accel_g, gyro_dps=rec.gyro_dps,
@@ -639,6 +664,9 @@ class CampaignRunner:
             self.fail()  # safe, but the campaign cannot go on until the store can be written again
         else:
             self.stopped_safely()
+
+    def on_exit_soaking(self, *_: Any) -> None:
+        self._soak_window = None  # the next soak's entry must not show this one's progress
 
     def on_enter_safe_stop(self, *_: Any) -> None:
         # From here until the lab is safe nothing waits on the store: it may be what failed.

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from labrunner import api
-from labrunner.commands.progress import ProgressBar
+from labrunner.commands.progress import ProgressBar, clock_text
 from labrunner.commands.types import count, interval, seconds
 
 
@@ -75,18 +75,21 @@ examples:
 
     st = sub.add_parser(
         "status", help="progress of a campaign (also while it runs in another terminal)",
-        description="Show a campaign's status, state, progress, lab time, next step, ETA, faults and recent "
-                    "events. Safe while the campaign runs in another process.",
+        description="Show a campaign's status, state, progress, lab time, the latest chamber and IMU "
+                    "temperatures, a soak's progress (spread over the window against the tolerance, time stable), "
+                    "next step, ETA (lab time left, and wall time at the measured pace), faults and recent events. "
+                    "Safe while the campaign runs in another process.",
         epilog="""\
 examples:
   labrunner status quick.db
-  labrunner status quick.db --watch 5 --events 15           # refresh every 5 s; Ctrl-C to leave""")
+  labrunner status quick.db --watch 5 --events 15           # refresh every 5 s until the campaign ends""")
     st.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
     st.add_argument("--campaign", type=int, default=None, metavar="N",
                     help="campaign id (default: the latest in the database)")
     st.add_argument("--events", type=count, default=8, metavar="N", help="how many recent events to show")
     st.add_argument("--watch", type=interval, default=None, metavar="S",
-                    help="refresh every S seconds until Ctrl-C (default: print once)")
+                    help="refresh every S seconds until the campaign ends (done, paused, aborted, failed, or its "
+                         "process gone; exit 0 with its final state) or Ctrl-C (default: print once)")
     st.set_defaults(func=cmd_status)
 
     ab = sub.add_parser(
@@ -130,7 +133,7 @@ examples:
 
 
 def _execute(session: api.Session, quiet: bool, db: Path) -> int:
-    bar = ProgressBar(session.steps_total, quiet)
+    bar = ProgressBar(session.steps_total, quiet, initial=session.steps_done)  # a resumed one: where it was
     try:
         r = session.execute(None if quiet else bar, handle_signals=True)
     finally:
@@ -188,22 +191,30 @@ def _tell(line: str) -> None:
 # --- status ------------------------------------------------------------------------------------------
 
 
-def status_text(db: Path, campaign: int | None, n_events: int) -> str:
-    s = api.status(db, campaign=campaign, events=n_events)
+def status_text(s: api.CampaignStatus) -> str:
     status = s.status + (" (process gone: resume it)" if s.status == "running" and not s.process_alive else "")
-    lines = [f"campaign {s.campaign_id} '{s.name}' in {db}", f"  status      {status}",
+    lines = [f"campaign {s.campaign_id} '{s.name}' in {s.db}", f"  status      {status}",
              f"  mode        {'dry run (simulated lab)' if s.mode == 'sim' else 'lab'}",
              f"  state       {s.state}",
              f"  progress    {s.steps_done}/{s.steps_total} steps ({100.0 * s.fraction_done:.1f} %), "
              f"{s.samples:,} samples",
              f"  lab time    {s.lab_time_s / 3600:.2f} h"]
+    if s.chamber_c is not None or s.imu_temp_c is not None:
+        lines.append(f"  measured    chamber {_celsius(s.chamber_c)}, IMU {_celsius(s.imu_temp_c)} (latest stored)")
+    if s.soak is not None:
+        k = s.soak
+        spread = (f"IMU spread {k.imu_spread_c:.2f} C of {k.tolerance_c:g} C allowed" if k.sensor == "imu" else
+                  f"chamber off by {k.chamber_offset_c:.2f} C of {k.tolerance_c:g} C allowed")
+        lines.append(f"  soak        at {k.setpoint_c:+g} C: {spread} over the last {k.window_s:.0f} s; stable "
+                     f"{k.stable_s:.0f} of {k.window_s:.0f} s (soaking {k.soaked_s / 60:.0f} min)")
     if s.next_step is not None:
         n = s.next_step
         lines.append(f"  next step   {n.idx}: {n.orientation} {n.temperature_c:+g} C {n.rate_dps:+g} deg/s")
-        if s.eta_s is not None and s.eta_estimated:
-            lines.append(f"  ETA         about {s.eta_s / 3600:.1f} h of lab time (estimate)")
-        elif s.eta_s is not None:
-            lines.append(f"  ETA         about {s.eta_s / 3600:.1f} h of lab time left (at the pace so far)")
+        if s.eta_s is not None:
+            how = "the procedure's estimate" if s.eta_estimated else "the plan, corrected by the pace so far"
+            wall = f", {clock_text(s.eta_wall_s)} of wall time at the measured pace" if s.eta_wall_s is not None \
+                else ""
+            lines.append(f"  ETA         about {s.eta_s / 3600:.1f} h of lab time left ({how}){wall}")
     lines.append(f"  updated     {time.time() - s.updated_wall:.0f} s ago")
     lines.append(f"  faults      {s.faults}   re-recorded steps: {s.rerecorded_steps}")
     lines.append("  recent events:")
@@ -212,17 +223,26 @@ def status_text(db: Path, campaign: int | None, n_events: int) -> str:
     return "\n".join(lines)
 
 
+def _celsius(value: float | None) -> str:
+    return "?" if value is None else f"{value:.2f} C"
+
+
 def cmd_status(args: argparse.Namespace) -> int:
-    if args.watch:
-        try:
-            while True:
-                text = status_text(args.db, args.campaign, args.events)
-                print("\033[2J\033[H" + text, flush=True)
-                time.sleep(args.watch)
-        except KeyboardInterrupt:
-            return 0
-    print(status_text(args.db, args.campaign, args.events))
-    return 0
+    s = api.status(args.db, campaign=args.campaign, events=args.events)
+    if not args.watch:
+        print(status_text(s))
+        return 0
+    try:
+        while True:
+            print("\033[2J\033[H" + status_text(s), flush=True)
+            if s.over:  # done, paused, aborted, failed, or its process gone: nothing more will change
+                print(f"campaign {s.campaign_id} ended: {s.status}"
+                      + (" (process gone: resume it)" if s.status == "running" else ""), flush=True)
+                return 0
+            time.sleep(args.watch)
+            s = api.status(args.db, campaign=s.campaign_id, events=args.events)  # the one it began with
+    except KeyboardInterrupt:
+        return 0
 
 
 # --- abort, export -------------------------------------------------------------------------------------

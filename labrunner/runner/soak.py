@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -25,6 +26,62 @@ class SoakReading:
     t_s: float
     chamber_c: float
     imu_c: float  # NaN when the IMU gave no sample
+
+
+@dataclass(frozen=True)
+class SoakProgress:
+    """How close a soak is to stable, for a live view: what `SoakWindow.stable` judges, as numbers."""
+
+    setpoint_c: float
+    tolerance_c: float
+    window_s: float
+    sensor: str  # "imu": the IMU's spread counts; "chamber": only the chamber's offset
+    chamber_c: float  # the newest readings
+    imu_c: float
+    chamber_offset_c: float  # the largest |chamber - setpoint| over the last window
+    imu_spread_c: float  # max - min of the IMU temperature over the last window (NaN: no IMU reading)
+    stable_s: float  # how long every reading has held, up to the window: stable once it reaches window_s
+    soaked_s: float  # since the soak's first reading
+
+    @property
+    def stable(self) -> bool:
+        return self.stable_s >= self.window_s - _EPS_S
+
+
+def soak_progress(readings: Sequence[SoakReading], soak: Soak, setpoint_c: float,
+                  first_t: float | None = None) -> SoakProgress | None:
+    """The progress of a soak from its readings in time order (None: no reading yet); `first_t` is
+    the soak's first reading when older ones were dropped. Only the last window counts, as for
+    `SoakWindow.stable`: `stable_s` reaches the window exactly when that says stable."""
+    if not readings:
+        return None
+    newest = readings[-1]
+    first = readings[0].t_s if first_t is None else first_t
+    window = [r for r in readings if r.t_s >= newest.t_s - soak.stable_window_s - _EPS_S]
+    imu = [r.imu_c for r in window if math.isfinite(r.imu_c)]
+    lo = hi = math.nan
+    held_from: float | None = None  # the oldest reading from which every newer one holds
+    for r in reversed(window):
+        if abs(r.chamber_c - setpoint_c) > soak.tolerance_c:
+            break
+        if soak.sensor == "imu":
+            if not math.isfinite(r.imu_c):
+                break
+            lo, hi = (r.imu_c, r.imu_c) if math.isnan(lo) else (min(lo, r.imu_c), max(hi, r.imu_c))
+            if hi - lo > soak.tolerance_c:
+                break
+        held_from = r.t_s
+    if held_from is None:
+        stable_s = 0.0
+    elif held_from == window[0].t_s:  # the whole window holds: as long as the soak, up to the window
+        stable_s = min(newest.t_s - first, soak.stable_window_s)
+    else:
+        stable_s = newest.t_s - held_from
+    return SoakProgress(
+        setpoint_c=setpoint_c, tolerance_c=soak.tolerance_c, window_s=soak.stable_window_s, sensor=soak.sensor,
+        chamber_c=newest.chamber_c, imu_c=newest.imu_c,
+        chamber_offset_c=max(abs(r.chamber_c - setpoint_c) for r in window),
+        imu_spread_c=max(imu) - min(imu) if imu else math.nan, stable_s=stable_s, soaked_s=newest.t_s - first)
 
 
 class SoakWindow:
@@ -62,6 +119,10 @@ class SoakWindow:
             imu = [r.imu_c for r in window]
             return all(math.isfinite(v) for v in imu) and max(imu) - min(imu) <= s.tolerance_c
         return True
+
+    def progress(self) -> SoakProgress | None:
+        """How close the soak is to `stable()`, for the live view (reads only)."""
+        return soak_progress(self._readings, self.soak, self.setpoint_c, self._first_t)
 
 
 TimeoutAction = Literal["continue", "pause", "abort"]
