@@ -395,7 +395,9 @@ class Store:
         return cls(engine, p)
 
     @classmethod
-    def open_existing(cls, path: str | Path) -> Store:
+    def open_existing(cls, path: str | Path, *, check: bool = True) -> Store:
+        """Open a store (migrating a schema-1 one). `check`: run SQLite's quick_check first and raise
+        `StoreDamage` when it finds damage (`labrunner check --db` opens without it, to report all)."""
         p = Path(path)
         if not p.exists():
             raise UserError(f"{p}: database not found")
@@ -428,7 +430,8 @@ class Store:
                               f"wrote (this labrunner reads {SCHEMA_VERSION}): the store is damaged")
         store = cls(engine, p)
         try:
-            store.quick_check()
+            if check:
+                store.quick_check()
         except BaseException:
             engine.dispose()
             raise
@@ -461,9 +464,12 @@ class Store:
             return []  # other servers keep their own page checksums
         try:
             with self.engine.connect() as conn:
-                lines = [str(r) for r in conn.exec_driver_sql(f"PRAGMA {pragma}(20)").scalars()]
+                rows = [str(r) for r in conn.exec_driver_sql(f"PRAGMA {pragma}(20)").scalars()]
         except _STORE_FAILURES as exc:
             return [str(getattr(exc, "orig", None) or exc)]
+        # A row may hold several lines and a "*** in database main ***" heading: one problem a line.
+        lines = [line.strip() for r in rows for line in r.splitlines()
+                 if line.strip() and not line.startswith("*** in database")]
         return [] if lines == ["ok"] else lines
 
     def quick_check(self) -> None:
@@ -480,17 +486,20 @@ class Store:
         """Which tables cannot be read through (the damaged pages' owners), as 'table T, campaign C: '."""
         found = []
         for table in metadata.sorted_tables:
-            last = None
+            last: Any = None
+            camp = table.c.id if table is campaigns else table.c.get("campaign_id")
+            step = table.c.get("step_idx", table.c.get("idx")) if table is not campaigns else None
             try:
                 with self.engine.connect() as conn:
-                    has_campaign = "campaign_id" in table.c
-                    cols = [table.c.campaign_id] if has_campaign else [next(iter(table.c))]
-                    for row in conn.execute(select(*cols, *[c for c in table.c if c not in cols])):
-                        last = row[0]
+                    # Every column is read (the damage may sit in a blob's overflow pages), in rowid order.
+                    for row in conn.execute(select(*table.c)).mappings():
+                        last = row
             except _STORE_FAILURES:
                 where = f"table {table.name}"
-                if last is not None and "campaign_id" in table.c:
-                    where += f", after a row of campaign {last}"
+                if last is not None and camp is not None:
+                    where += f", after the row of campaign {last[camp.name]}"
+                    if step is not None and last[step.name] is not None:
+                        where += f" step {last[step.name]}"
                 found.append(where)
         return ("in " + "; ".join(found) + ": ") if found else ""
 

@@ -20,19 +20,23 @@ def register(sub: argparse._SubParsersAction) -> None:
 examples:
   labrunner check quick                                     # the shipped quick procedure's plan
   labrunner check procedures/paper_campaign.yaml --lab lab.yaml
-  labrunner check --sim-config sim.yaml --csv quick.csv""")
+  labrunner check --sim-config sim.yaml --csv quick.csv
+  labrunner check --db quick.db                             # the store: pages, JSON and sample blobs""")
     p.add_argument("procedure", type=Path, nargs="?", metavar="PROCEDURE",
                    help="procedure YAML, or the name of a shipped one (quick, paper_campaign)")
     p.add_argument("--lab", type=Path, metavar="LAB.yaml", help="lab configuration naming the instruments")
     p.add_argument("--sim-config", type=Path, metavar="SIM.yaml",
                    help="sim configuration (seed, plants, IMU model, faults)")
     p.add_argument("--csv", type=Path, metavar="FILE", help="campaign CSV, as `labrunner export` writes it")
+    p.add_argument("--db", type=Path, metavar="DB",
+                   help="labrunner store: SQLite's full integrity check, then every stored JSON column and sample "
+                        "blob decoded; each problem named by campaign, table and step (exit 2 when damaged)")
     p.set_defaults(func=cmd_check)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    if not (args.procedure or args.lab or args.sim_config or args.csv):
-        raise UserError("nothing to check: give a procedure, --lab, --sim-config or --csv")
+    if not (args.procedure or args.lab or args.sim_config or args.csv or args.db):
+        raise UserError("nothing to check: give a procedure, --lab, --sim-config, --csv or --db")
     if args.procedure:
         p = api.load_procedure(args.procedure)
         steps = p.steps()
@@ -61,4 +65,23 @@ def cmd_check(args: argparse.Namespace) -> int:
               f"{', '.join(sorted(f.orientation.astype(str).unique()))}, IMU temperature "
               f"{f.imu_temp_c.min():.1f}..{f.imu_temp_c.max():.1f} C, table {f.table_rate_dps.min():g}.."
               f"{f.table_rate_dps.max():g} deg/s")
+    if args.db:
+        return _check_store(args.db)
+    return 0
+
+
+def _check_store(db: Path) -> int:
+    """The store's damage, one line each (exit 2), or that it is clean (exit 0)."""
+    from labrunner.store import Store
+
+    with Store.open_existing(db, check=False) as store:  # the open's quick_check would stop at the first
+        problems = store.damage_report()
+        ids = [] if problems else store.campaign_ids()
+    if problems:
+        print(f"{db}: the store is damaged: {len(problems)} problem{'s' if len(problems) != 1 else ''}")
+        for line in problems:
+            print(f"  {line}")
+        return 2
+    print(f"{db}: the store is intact: integrity check ok, {len(ids)} campaign(s), every JSON column and sample "
+          "blob readable")
     return 0
