@@ -10,6 +10,7 @@ import argparse
 from pathlib import Path
 
 from labrunner import api
+from labrunner.runner.lease import STALE_AFTER_S
 
 HEADER = ("id", "name", "status", "steps", "samples", "mode", "process", "last heartbeat")
 
@@ -44,6 +45,9 @@ def _process(s: api.CampaignSummary) -> str:
         return "-"
     if s.process_alive is False:
         return f"{holder} (gone: resume it)"
+    if s.process_alive is None and s.heartbeat_age_s > STALE_AFTER_S:
+        # Another host's process cannot be looked at: only its heartbeat tells, and it stopped.
+        return f"{holder} (stale: resume --take-over once it is stopped)"
     return holder
 
 

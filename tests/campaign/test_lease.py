@@ -109,6 +109,9 @@ def test_live_lease_of_another_host_is_refused_even_with_take_over(tmp_path, tin
 def test_stale_lease_is_taken_only_with_take_over(tmp_path, tiny):
     db = _paused(tmp_path, tiny)
     _hold(db, host="lab-pc-2", pid=4242, age_s=STALE_AFTER_S + 30)
+    with sqlite3.connect(db) as conn:  # the holder's last heartbeat, as its process left it
+        conn.execute("UPDATE campaigns SET updated_wall = lease_wall")
+    assert "pid 4242 on lab-pc-2 (stale: resume --take-over" in cli("list", db, check=0).stdout
     r = cli("resume", db, "--quiet", timeout=60)
     assert r.returncode == 2, r.stderr
     assert "pid 4242 on lab-pc-2" in r.stderr and "stale" in r.stderr and "--take-over" in r.stderr, r.stderr
