@@ -312,11 +312,13 @@ class Campaign:
         if not pending.empty:
             row = pending.iloc[0]
             nxt = NextStep(int(row.idx), str(row.orientation), float(row.temperature_c), float(row.rate_dps))
-        live = _live(store, info, self.procedure(), trans, nxt, running=info.status == "running")
+        alive = process_alive(info.pid, info.host, info.lease_wall)
+        # A wall-time ETA only for a session that runs: a killed one's pace tells nothing of when it ends.
+        live = _live(store, info, self.procedure(), trans, nxt, running=info.status == "running" and alive)
         lab_time, eta, estimated = live.lab_time_s, live.lab_left_s if nxt is not None else None, done == 0
         return CampaignStatus(
             campaign_id=self.id, name=info.name, db=self.db.path, status=info.status,
-            process_alive=process_alive(info.pid, info.host, info.lease_wall), mode=info.mode, state=state,
+            process_alive=alive, mode=info.mode, state=state,
             steps_done=done, steps_total=total, samples=int(stp.n_samples.fillna(0).sum()), lab_time_s=lab_time,
             next_step=nxt,
             eta_s=eta, eta_estimated=estimated, updated_wall=info.updated_wall, chamber_c=live.chamber_c,
