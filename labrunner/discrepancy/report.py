@@ -172,8 +172,10 @@ def summary_markdown(diagnosis: Diagnosis, plots: list[str]) -> str:
         drift = f"{n.drift_per_sqrt_s * _SCALE[c]:.3g} {_UNITS[c]}" if n.drift_evidence > 10 else "none detected"
         lines.append(f"| {c} | {n.white_rms * _SCALE[c]:.3g} {_UNITS[c]} | {drift} |")
     if diagnosis.model_path:
-        lines += ["", (f"Extended simulation model: `{diagnosis.model_path}` "
-                       f"(load with `SimLabConfig.from_dict({{\"imu_model\": path}})`).")]
+        model = Path(diagnosis.model_path).resolve()
+        lines += ["", (f"Extended simulation model: `{diagnosis.model_path}`. To rehearse with it, write "
+                       f"`imu_model: {model}` into a sim configuration (say `sim.yaml`) and run "
+                       "`labrunner run PROCEDURE --sim --sim-config sim.yaml --db DB`.")]
     lines += ["", "## Plots", ""] + [f"- ![{p}]({p})" for p in plots]
     lines += ["", (f"Method: {diagnosis.method['criterion']}; {diagnosis.method['folds']} folds of "
                    f"{diagnosis.method['holdout_segment_s']:.0f} s stretches, "
