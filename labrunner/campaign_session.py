@@ -67,7 +67,8 @@ class RunResult:
     steps_total: int
     steps_recorded: int = 0  # in this session
     samples: int = 0  # in this session
-    steps_rerecorded: int = 0
+    steps_rerecorded: int = 0  # steps recorded more than once, campaign-wide (as `status` counts them)
+    steps_rerecorded_session: int = 0  # of those, the ones recorded again in this session
     faults: int = 0
     recoveries: int = 0
     lab_time_s: float = 0.0
@@ -151,13 +152,14 @@ class Session:
             view = LiveView(runner)
             runner.progress = lambda r: progress(view(r))
         started = time.time()
+        attempts_before = _attempts(self.store, self.campaign_id)
         try:
             with _signals(self, handle_signals):
                 final = runner.run()
         finally:
             self._close_lab()
         log.info("campaign %d: %s after %.1f s wall", self.campaign_id, final, time.time() - started)
-        return _result(runner, self.db, final, time.time() - runner.stats.started_wall)
+        return _result(runner, self.db, final, time.time() - runner.stats.started_wall, attempts_before)
 
     def _close_lab(self) -> None:
         if self.lab is not None:
@@ -211,13 +213,30 @@ class LiveView:
                         soak=runner.soak_progress(), lab_left_s=eta.lab_left_s, eta_s=eta.wall_left_s)
 
 
-def _result(runner: CampaignRunner, db: Path, final: str, wall_s: float) -> RunResult:
+def _attempts(store: Store, campaign_id: int) -> dict[int, int]:
+    """Recording attempts per step index, as stored."""
+    stp = store.steps_frame(campaign_id)
+    return {int(i): int(a) for i, a in zip(stp.idx, stp.attempts)}
+
+
+def _rerecorded(store: Store, campaign_id: int, before: dict[int, int]) -> tuple[int, int]:
+    """Steps recorded more than once, campaign-wide (what `status` shows) and in this session."""
+    after = _attempts(store, campaign_id)
+    total = sum(1 for a in after.values() if a > 1)
+    session = sum(1 for i, a in after.items() if a > 1 and a > max(1, before.get(i, 0)))
+    return total, session
+
+
+def _result(runner: CampaignRunner, db: Path, final: str, wall_s: float,
+            attempts_before: dict[int, int] | None = None) -> RunResult:
     s = runner.stats
+    rerecorded, rerecorded_session = _rerecorded(runner.store, runner.cid, attempts_before or {})
     inj = getattr(runner, "fault_injector", None)
     return RunResult(
         campaign_id=runner.cid, db=db, state=final, exit_code=EXIT_CODES[final], steps_done=runner.done_steps(),
         steps_total=len(runner.plan), steps_recorded=s.steps_recorded, samples=s.samples,
-        steps_rerecorded=s.steps_rerecorded, faults=s.faults, recoveries=s.recoveries, lab_time_s=runner.t,
+        steps_rerecorded=rerecorded, steps_rerecorded_session=rerecorded_session, faults=s.faults,
+        recoveries=s.recoveries, lab_time_s=runner.t,
         wall_s=wall_s, reason=runner.last_error if final != "done" else None,
         faults_injected=inj.injected if inj is not None else None,
         faults_by_kind=dict(inj.by_kind) if inj is not None else {}, auto_resumes=runner.auto_resumes,

@@ -132,6 +132,11 @@ examples:
 # --- run, resume ---------------------------------------------------------------------------------------
 
 
+def rerecorded_text(campaign_wide: int, session: int) -> str:
+    """Steps recorded more than once, in `status`'s words; this session's share when it differs."""
+    return f"re-recorded steps: {campaign_wide}" + (f" ({session} this session)" if session != campaign_wide else "")
+
+
 def _execute(session: api.Session, quiet: bool, db: Path) -> int:
     bar = ProgressBar(session.steps_total, quiet, initial=session.steps_done)  # a resumed one: where it was
     try:
@@ -139,8 +144,9 @@ def _execute(session: api.Session, quiet: bool, db: Path) -> int:
     finally:
         bar.close()
     print(f"campaign {r.campaign_id} in {db}: {r.state}. {r.steps_done}/{r.steps_total} steps recorded "
-          f"({r.steps_recorded} this session, {r.samples} samples, {r.steps_rerecorded} recorded again, "
-          f"{r.faults} faults); lab time {r.lab_time_s / 3600:.2f} h, wall {r.wall_s:.1f} s", file=sys.stderr)
+          f"({r.steps_recorded} this session, {r.samples} samples, {r.faults} faults); "
+          f"{rerecorded_text(r.steps_rerecorded, r.steps_rerecorded_session)}; "
+          f"lab time {r.lab_time_s / 3600:.2f} h, wall {r.wall_s:.1f} s", file=sys.stderr)
     if r.faults_injected is not None:
         kinds = ", ".join(f"{k} {v}" for k, v in sorted(r.faults_by_kind.items()))
         print(f"faults injected: {r.faults_injected} ({kinds}); auto-resumed {r.auto_resumes} time(s), "
