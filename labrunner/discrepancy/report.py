@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -11,6 +11,8 @@ import pandas as pd
 from labrunner.domain import CHANNELS, ORIENTATIONS
 
 if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
     from .diagnose import Diagnosis
 
 _MAX_POINTS = 20000  # per scatter panel; more only blurs
@@ -29,6 +31,11 @@ PLOTS: tuple[tuple[str, str, str, str], ...] = (
 )
 
 
+_BASELINE = "tab:red"
+_EXTENDED = "k"
+_BINS = 40  # binned means of the extended model's residual along x
+
+
 def write_report(diagnosis: Diagnosis, directory: str | Path) -> list[Path]:
     """Write plots, residuals.csv and summary.md into `directory`; returns the files written."""
     import matplotlib
@@ -39,18 +46,55 @@ def write_report(diagnosis: Diagnosis, directory: str | Path) -> list[Path]:
     table = diagnosis.residuals
     written: list[Path] = []
     for name, column, label, _ in PLOTS:
-        written.append(_scatter(table, column, label, out / name))
-    written.append(_per_group(table, "run", "run (power-on)", out / "residual_by_run.png"))
-    written.append(_per_group(table, "orientation", "orientation (specific force)",
-                              out / "residual_by_orientation.png"))
-    written.append(_gain_plot(diagnosis, out / "heldout_rms.png"))
+        written.append(_save(scatter_figure(table, column, label), out / name))
+    notes: list[str] = []
+    if runs_are_orientations(table):
+        # Each run is one orientation: one figure says it all, the other would repeat it.
+        written.append(_save(per_group_figure(table, "run", "run (power-on)", with_orientation=True),
+                             out / "residual_by_run.png"))
+        notes.append("`residual_by_run.png` stands for both run and orientation: each run (power-on) was "
+                     "recorded in one orientation and each orientation in one run, so `residual_by_orientation.png` "
+                     "would show the same data again and is not drawn.")
+    else:
+        written.append(_save(per_group_figure(table, "run", "run (power-on)"), out / "residual_by_run.png"))
+        written.append(_save(per_group_figure(table, "orientation", "orientation (specific force)"),
+                             out / "residual_by_orientation.png"))
+    written.append(_save(gain_figure(diagnosis), out / "heldout_rms.png"))
     csv = out / "residuals.csv"
     table.to_csv(csv, index=False, float_format="%.9g")
     written.append(csv)
     summary = out / "summary.md"
-    summary.write_text(summary_markdown(diagnosis, [p.name for p in written if p.suffix == ".png"]))
+    summary.write_text(summary_markdown(diagnosis, [p.name for p in written if p.suffix == ".png"], notes))
     written.append(summary)
     return written
+
+
+def runs_are_orientations(table: pd.DataFrame) -> bool:
+    """Runs and orientations coincide one-to-one (each run one orientation, each orientation one run)."""
+    if table.empty:
+        return False
+    pairs = table[["run", "orientation"]].drop_duplicates()
+    return bool(pairs.run.is_unique and pairs.orientation.is_unique)
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _figure_legend(fig: Figure, axes: Any, markerscale: float = 1.0) -> None:
+    """One legend for the figure, below the panels (outside every axes, over no data)."""
+    handles, labels = [], []
+    for ax in np.ravel(axes):
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, loc="lower center", bbox_to_anchor=(0.5, 0.0), ncol=min(len(labels), 6),
+               fontsize=9, markerscale=markerscale, frameon=False)
 
 
 def _subsample(table: pd.DataFrame) -> pd.DataFrame:
@@ -59,88 +103,126 @@ def _subsample(table: pd.DataFrame) -> pd.DataFrame:
     return table.iloc[np.linspace(0, len(table) - 1, _MAX_POINTS).astype(int)]
 
 
-def _scatter(table: pd.DataFrame, column: str, label: str, path: Path) -> Path:
+def _binned_mean(x: np.ndarray, y: np.ndarray, log: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of y in bins along x (empty bins left out), for a thin line over the points."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if x.size == 0:
+        return x, y
+    lo, hi = float(x.min()), float(x.max())
+    if hi <= lo:
+        return np.array([lo]), np.array([float(y.mean())])
+    if log and lo >= 0.0:
+        edges = np.concatenate([[lo], np.geomspace(max(lo, 1.0), hi, _BINS)])
+        edges = np.unique(edges)
+    else:
+        edges = np.linspace(lo, hi, _BINS + 1)
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+    count = np.bincount(idx, minlength=len(edges) - 1)
+    keep = count > 0
+    xs = np.bincount(idx, weights=x, minlength=len(edges) - 1)[keep] / count[keep]
+    ys = np.bincount(idx, weights=y, minlength=len(edges) - 1)[keep] / count[keep]
+    return xs, ys
+
+
+def scatter_figure(table: pd.DataFrame, column: str, label: str) -> Figure:
+    """Baseline residual as coloured points; the extended model's as a thin black line of binned means."""
     import matplotlib.pyplot as plt
 
     data = _subsample(table)
     x = data[column].to_numpy(dtype=float)
     if column == "t_s":
         x = x / 3600.0
-    fig, axes = plt.subplots(2, 3, figsize=(14, 7), sharex=True)
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7.5), sharex=True)
     branch = data["branch"].to_numpy()
+    log = column == "t_on_s" and bool(np.nanmax(x) > 0) if x.size else False
     for ax, c in zip(axes.flat, CHANNELS):
         y = data[f"residual_{c}"].to_numpy() * _SCALE[c]
         y_after = data[f"after_{c}"].to_numpy() * _SCALE[c]
         if column == "imu_temp_c":
             for value, colour, text in ((1, "tab:red", "heating"), (-1, "tab:blue", "cooling"), (0, "0.6", "steady")):
                 sel = branch == value
-                ax.scatter(x[sel], y[sel], s=2, c=colour, alpha=0.5, label=text, rasterized=True)
+                ax.scatter(x[sel], y[sel], s=3, c=colour, alpha=0.5, label=f"baseline model, {text}",
+                           rasterized=True, zorder=1)
+            # Hysteresis shows as heating and cooling apart: the extended model's means per branch.
+            for value, style, text in ((1, "-", "heating"), (-1, "--", "cooling")):
+                sel = branch == value
+                if sel.sum() >= 2:
+                    bx, by = _binned_mean(x[sel], y_after[sel])
+                    ax.plot(bx, by, style, c=_EXTENDED, lw=1.0, zorder=3,
+                            label=f"extended model, binned mean ({text})")
         else:
-            ax.scatter(x, y, s=2, c="tab:red", alpha=0.5, label="baseline model", rasterized=True)
-        ax.scatter(x, y_after, s=1, c="k", alpha=0.3, label="extended model", rasterized=True)
+            ax.scatter(x, y, s=3, c=_BASELINE, alpha=0.5, label="baseline model", rasterized=True, zorder=1)
+            bx, by = _binned_mean(x, y_after, log=log)
+            ax.plot(bx, by, "-", c=_EXTENDED, lw=1.0, zorder=3, label="extended model, binned mean")
         ax.set_title(c)
         ax.set_ylabel(f"measured - model ({_UNITS[c]})")
-        if column == "t_on_s" and np.nanmax(x) > 0:
+        if log:
             ax.set_xscale("symlog", linthresh=60.0)
     for ax in axes[-1]:
         ax.set_xlabel(label)
-    axes.flat[0].legend(loc="best", fontsize=7, markerscale=4)
     fig.suptitle(f"Residual against {label}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    fig.tight_layout(rect=(0.0, 0.06, 1.0, 1.0))
+    _figure_legend(fig, axes, markerscale=4.0)
+    return fig
 
 
-def _per_group(table: pd.DataFrame, column: str, label: str, path: Path) -> Path:
+def per_group_figure(table: pd.DataFrame, column: str, label: str, with_orientation: bool = False) -> Figure:
+    """Weighted mean residual per run or orientation: baseline as a broad coloured line, the extended model
+    as a thin black one on top (both stay visible where they agree). `with_orientation`: runs are
+    orientations one-to-one, and the run ticks name them."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 3, figsize=(14, 7), sharex=True)
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7.5), sharex=True)
     groups = table.groupby(column, observed=True)
+    weights = table["rows"]
     for ax, c in zip(axes.flat, CHANNELS):
-        weights = table["rows"]
-        for key, values in (("residual", "tab:red"), ("after", "k")):
+        for key, colour, lw, ms, text, z in (("residual", _BASELINE, 3.0, 7, "baseline model", 1),
+                                              ("after", _EXTENDED, 1.0, 3, "extended model", 3)):
             col = f"{key}_{c}"
             mean = (table[col] * weights).groupby(table[column], observed=True).sum() / groups["rows"].sum()
             xs = [ORIENTATIONS.index(k) if column == "orientation" else k for k in mean.index]
-            ax.plot(xs, mean.to_numpy() * _SCALE[c], "o-", c=values, ms=3,
-                    label="baseline model" if key == "residual" else "extended model")
+            ax.plot(xs, mean.to_numpy() * _SCALE[c], "o-", c=colour, lw=lw, ms=ms, alpha=0.6 if z == 1 else 1.0,
+                    label=text, zorder=z)
         ax.set_title(c)
         ax.set_ylabel(f"mean residual ({_UNITS[c]})")
         if column == "orientation":
             ax.set_xticks(range(len(ORIENTATIONS)), ORIENTATIONS, rotation=45)
+        elif with_orientation:
+            runs = table[["run", "orientation"]].drop_duplicates().sort_values("run")
+            ax.set_xticks(runs.run.tolist(), [f"{r}\n{o}" for r, o in zip(runs.run, runs.orientation)])
     for ax in axes[-1]:
-        ax.set_xlabel(label)
-    axes.flat[0].legend(fontsize=7)
-    fig.suptitle(f"Mean residual per {label}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+        ax.set_xlabel("run (power-on) and its orientation" if with_orientation else label)
+    title = f"Mean residual per {label}"
+    if with_orientation:
+        title = "Mean residual per run (power-on) = per orientation: each run is one orientation"
+    fig.suptitle(title)
+    fig.tight_layout(rect=(0.0, 0.06, 1.0, 1.0))
+    _figure_legend(fig, axes)
+    return fig
 
 
-def _gain_plot(diagnosis: Diagnosis, path: Path) -> Path:
+def gain_figure(diagnosis: Diagnosis) -> Figure:
+    """Held-out RMS per channel, baseline against extended model."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     for ax, triad in zip(axes, ("accel", "gyro")):
         chans = [c for c in CHANNELS if c.startswith(triad)]
         before = [diagnosis.gain.heldout_rms_before[c] * _SCALE[c] for c in chans]
         after = [diagnosis.gain.heldout_rms_after[c] * _SCALE[c] for c in chans]
         xs = np.arange(len(chans))
-        ax.bar(xs - 0.2, before, 0.4, label="baseline model", color="tab:red")
-        ax.bar(xs + 0.2, after, 0.4, label="extended model", color="k")
+        ax.bar(xs - 0.2, before, 0.4, label="baseline model", color=_BASELINE)
+        ax.bar(xs + 0.2, after, 0.4, label="extended model", color=_EXTENDED)
         ax.set_xticks(xs, chans)
         ax.set_ylabel(f"held-out RMS ({_UNITS[chans[0]]})")
-    axes[0].legend(fontsize=8)
     fig.suptitle("Held-out residual RMS (time blocks held out)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    fig.tight_layout(rect=(0.0, 0.08, 1.0, 1.0))
+    _figure_legend(fig, axes)
+    return fig
 
 
-def summary_markdown(diagnosis: Diagnosis, plots: list[str]) -> str:
+def summary_markdown(diagnosis: Diagnosis, plots: list[str], plot_notes: list[str] | None = None) -> str:
     lines = ["# Diagnosis: what the simulated IMU gets wrong", "",
              f"**Verdict: {diagnosis.verdict}**", ""]
     if diagnosis.findings:
@@ -177,6 +259,8 @@ def summary_markdown(diagnosis: Diagnosis, plots: list[str]) -> str:
                        f"`imu_model: {model}` into a sim configuration (say `sim.yaml`) and run "
                        "`labrunner run PROCEDURE --sim --sim-config sim.yaml --db DB`.")]
     lines += ["", "## Plots", ""] + [f"- ![{p}]({p})" for p in plots]
+    if plot_notes:
+        lines += [""] + plot_notes
     lines += ["", (f"Method: {diagnosis.method['criterion']}; {diagnosis.method['folds']} folds of "
                    f"{diagnosis.method['holdout_segment_s']:.0f} s stretches, "
                    f"{diagnosis.method['blocks']} blocks."), ""]
