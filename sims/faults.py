@@ -103,22 +103,20 @@ class SimFaults:
         # MODBUS_DROP is one-shot: nothing to clear.
 
     def _flag(self, k: FaultKind, on: bool) -> None:
-        # Faults that are a flag on a simulated part, set while the fault lasts.
+        # Faults that are a flag on a simulated part, set while the fault lasts: (part, attribute).
+        flags = {
+            K.MODBUS_TIMEOUT: (self.chamber.faults, "silent"),
+            K.GARBAGE_PV: (self.chamber.faults, "garbage_pv"),
+            K.HEATER_FAILURE: (self.world.chamber, "heater_failed"),
+            K.COMPRESSOR_FAILURE: (self.world.chamber, "compressor_failed"),
+            K.HEATER_STUCK: (self.world.chamber, "heater_stuck"),
+            K.TABLE_SILENT: (self.table.faults, "silent"),
+            K.TABLE_GARBAGE: (self.table.faults, "garbage"),
+        }
         with self.world.lock:
-            if k is K.MODBUS_TIMEOUT:
-                self.chamber.faults.silent = on
-            elif k is K.GARBAGE_PV:
-                self.chamber.faults.garbage_pv = on
-            elif k is K.HEATER_FAILURE:
-                self.world.chamber.heater_failed = on
-            elif k is K.COMPRESSOR_FAILURE:
-                self.world.chamber.compressor_failed = on
-            elif k is K.HEATER_STUCK:
-                self.world.chamber.heater_stuck = on
-            elif k is K.TABLE_SILENT:
-                self.table.faults.silent = on
-            elif k is K.TABLE_GARBAGE:
-                self.table.faults.garbage = on
+            if k in flags:
+                part, attribute = flags[k]
+                setattr(part, attribute, on)
 
     def _link_down(self, k: FaultKind, down: bool) -> None:
         port = self.table_port if k is K.TABLE_LINK_DROP else self.imu_port
