@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,8 @@ from labrunner.drivers.chamber_profiles import profile_from
 from labrunner.drivers.imu_serial import SerialImu
 from labrunner.drivers.protocols import Chamber, Imu, Operator, RateTable
 from labrunner.drivers.rate_table import SerialRateTable
-from labrunner.yaml_config import ConfigError, load_model, validate
+from labrunner.operator import ConsoleOperator  # the console operator lives there; kept importable here
+from labrunner.yaml_config import load_model, validate
 
 if TYPE_CHECKING:  # the sims are imported only when a dry run is built
     from labrunner.sims.lab import SimLab
@@ -87,22 +87,6 @@ def load_lab_config(path: str | Path) -> tuple[LabConfig, str]:
 
 def lab_config_from_dict(data: dict[str, Any], source: str = "lab configuration") -> LabConfig:
     return validate(LabConfig, data, {}, source)
-
-
-class ConsoleOperator:
-    """A person at the terminal: prints the prompt and waits for Enter."""
-
-    def __init__(self, stream: Any = None) -> None:
-        self.stream = stream or sys.stderr
-
-    def remount(self, orientation: str, prompt: str) -> None:
-        print(f"\n>>> OPERATOR: {prompt}\n>>> Press Enter when the IMU is mounted {orientation} and powered on.",
-              file=self.stream, flush=True)
-        try:
-            input()
-        except EOFError:
-            raise ConfigError([f"operator prompt for {orientation}: no terminal to acknowledge it (stdin closed); "
-                               "run interactively or use --sim for a dry run"]) from None
 
 
 @dataclass

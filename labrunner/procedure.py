@@ -166,6 +166,23 @@ class Monitor(_Strict):
     average_s: float = Field(1.0, gt=0)
 
 
+class MountCheck(_Strict):
+    """After each remount (and at preflight) the accelerometer must show the planned axis up."""
+
+    enabled: bool = True
+    max_angle_deg: float = Field(10.0, gt=0, le=45)  # planned up axis vs measured specific force (45: ambiguous)
+    gravity_tolerance_g: float = Field(0.1, gt=0, le=0.5)  # |a| must be within this of 1 g
+    read_s: float = Field(1.0, ge=0.2, le=60)  # of IMU frames averaged for one check
+    tries: int = Field(3, ge=1, le=20)  # remount prompts before the campaign pauses
+
+
+class Resume(_Strict):
+    """What `labrunner resume` may skip when the lab was left running."""
+
+    in_place: bool = True  # IMU still mounted as planned and chamber near the setpoint: no remount, no ramp
+    chamber_tolerance_c: float = Field(2.0, gt=0, le=20)  # "near": within this of the next step's setpoint
+
+
 class Fit(_Strict):
     run: bool = True
     polynomial_order: int = Field(3, ge=0, le=6)
@@ -188,6 +205,8 @@ class ProcedureModel(_Strict):
     safety: Safety = Safety()
     faults: Faults = Faults()
     monitor: Monitor = Monitor()
+    mount_check: MountCheck = MountCheck()
+    resume: Resume = Resume()
     fit: Fit = Fit()
 
     @field_validator("orientations", mode="before")

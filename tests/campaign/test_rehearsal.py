@@ -5,6 +5,7 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -40,14 +41,54 @@ def served_lab(tmp_path):
     proc.wait(10)
 
 
+class _OperatorAtTerminal:
+    """`labrunner run` on the served lab, with an operator who types one Enter ahead at the start (which
+    must confirm nothing: it is discarded before the prompt) and answers each prompt once it is shown."""
+
+    def __init__(self, proc_file, lab_yaml, db) -> None:
+        self.p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(proc_file), "--lab",
+                                   str(lab_yaml), "--db", str(db), "--quiet"], stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self._answer()  # typed ahead
+        self.err: list[str] = []
+        self.out: list[str] = []
+        self._readers = [threading.Thread(target=self._read_err, daemon=True),
+                         threading.Thread(target=lambda: self.out.extend(self.p.stdout), daemon=True)]
+        for t in self._readers:
+            t.start()
+
+    def _answer(self) -> None:
+        try:
+            self.p.stdin.write("\n")
+            self.p.stdin.flush()
+        except (BrokenPipeError, ValueError):  # the run ended meanwhile
+            pass
+
+    def _read_err(self) -> None:
+        for line in self.p.stderr:
+            self.err.append(line)
+            if line.startswith(">>> Press Enter"):
+                self._answer()
+
+    def send_signal(self, sig) -> None:
+        self.p.send_signal(sig)
+
+    def kill(self) -> None:
+        self.p.kill()
+
+    @property
+    def returncode(self):
+        return self.p.returncode
+
+    def communicate(self, timeout):
+        self.p.wait(timeout)
+        for t in self._readers:
+            t.join(10)
+        return "".join(self.out), "".join(self.err)
+
+
 def _run_on_lab(proc_file, lab_yaml, db):
-    """`labrunner run` on the served lab, with the operator acknowledging the mounting prompt."""
-    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(proc_file), "--lab", str(lab_yaml),
-                          "--db", str(db), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    p.stdin.write("\n")
-    p.stdin.flush()
-    return p
+    return _OperatorAtTerminal(proc_file, lab_yaml, db)
 
 
 def _wait_steps(db, n, timeout):
