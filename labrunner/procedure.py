@@ -20,12 +20,12 @@ import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from labrunner.domain import ORIENTATIONS
-from labrunner.yaml_config import ConfigError, load_yaml, read_text, validate
+from labrunner.yaml_config import ConfigError, Range, RangedModel, load_yaml, read_text, validate
 
 log = logging.getLogger(__name__)
 
@@ -52,11 +52,57 @@ def triangular_rates(max_dps: float, step_dps: float) -> list[float]:
     return [round(r, 9) + 0.0 for r in up + down + back]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+# Every duration, rate, count and temperature of a procedure: finite and physical, so nothing a
+# procedure asks for can spin (a 1e-9 s poll), never end (an infinite soak) or overflow (1e308 s
+# records). Checked before any other check computes with them; `labrunner check` reports each with
+# file, line, key, value and this range. Counts that follow from several keys (temperatures, rates,
+# steps, frames) are limited in `_cross_checks`.
+TEMPERATURE_C = Range(-100.0, 250.0, "C")  # beyond any thermal chamber an IMU is calibrated in
+RATE_DPS = Range(-10000.0, 10000.0, "deg/s")
+RANGES: dict[str, Range] = {
+    "temperatures.list_c": TEMPERATURE_C,
+    "temperatures.start_c": TEMPERATURE_C,
+    "temperatures.stop_c": TEMPERATURE_C,
+    "temperatures.step_c": Range(0.1, 200.0, "C"),
+    "soak.tolerance_c": Range(0.01, 10.0, "C"),
+    "soak.stable_window_s": Range(1.0, 86400.0, "s"),
+    "soak.max_wait_s": Range(1.0, 7 * 86400.0, "s"),
+    "soak.poll_s": Range(0.1, 3600.0, "s"),
+    "remount_c": TEMPERATURE_C,
+    "remount_s": Range(0.0, 86400.0, "s"),
+    "rates.list_dps": RATE_DPS,
+    "rates.triangular.max_dps": Range(0.01, 10000.0, "deg/s"),
+    "rates.triangular.step_dps": Range(0.01, 10000.0, "deg/s"),
+    "settle_s": Range(0.0, 3600.0, "s"),
+    "record_s": Range(0.01, 86400.0, "s"),
+    "record_poll_s": Range(0.1, 3600.0, "s"),
+    "sample_rate_hz": Range(0.1, 10000.0, "Hz"),
+    "safety.chamber_min_c": TEMPERATURE_C,
+    "safety.chamber_max_c": TEMPERATURE_C,
+    "safety.max_rate_dps": Range(0.01, 10000.0, "deg/s"),
+    "safety.imu_max_temp_c": TEMPERATURE_C,
+    "faults.max_dropped_frames": Range(0, 10**6, "frames", integer=True),
+    "faults.max_rerecords": Range(0, 100, integer=True),
+    "monitor.average_s": Range(0.01, 3600.0, "s"),
+    "mount_check.max_angle_deg": Range(0.1, 45.0, "deg"),
+    "mount_check.gravity_tolerance_g": Range(0.001, 0.5, "g"),
+    "mount_check.read_s": Range(0.2, 60.0, "s"),
+    "mount_check.tries": Range(1, 20, integer=True),
+    "resume.chamber_tolerance_c": Range(0.01, 20.0, "C"),
+    "fit.polynomial_order": Range(0, 6, integer=True),
+}
+MAX_TEMPERATURES = 500
+MAX_RATES = 2000
+MAX_STEPS = 200_000  # the paper's campaign has 4080
+MAX_FRAMES_PER_RECORD = 5_000_000  # one record is held in memory (~40 bytes a frame)
+
+
+class _Strict(RangedModel):
+    RANGES: ClassVar[dict[str, Range]] = RANGES
 
 
 class Temperatures(_Strict):
+    SECTION: ClassVar[str] = "temperatures"
     list_c: list[float] | None = None
     start_c: float | None = None
     stop_c: float | None = None
@@ -88,6 +134,7 @@ class Temperatures(_Strict):
 
 
 class Soak(_Strict):
+    SECTION: ClassVar[str] = "soak"
     tolerance_c: float = Field(0.3, gt=0)
     stable_window_s: float = Field(600.0, gt=0)
     max_wait_s: float = Field(3 * 3600.0, gt=0)
@@ -105,11 +152,13 @@ class Soak(_Strict):
 
 
 class Orientation(_Strict):
+    SECTION: ClassVar[str] = "orientations"
     name: OrientationName
     prompt: str | None = None
 
 
 class Triangular(_Strict):
+    SECTION: ClassVar[str] = "rates.triangular"
     max_dps: float = Field(gt=0)
     step_dps: float = Field(gt=0)
 
@@ -122,6 +171,7 @@ class Triangular(_Strict):
 
 
 class Rates(_Strict):
+    SECTION: ClassVar[str] = "rates"
     list_dps: list[float] | None = None
     triangular: Triangular | None = None
 
@@ -141,6 +191,7 @@ class Rates(_Strict):
 
 
 class Safety(_Strict):
+    SECTION: ClassVar[str] = "safety"
     chamber_min_c: float = -40.0
     chamber_max_c: float = 85.0
     max_rate_dps: float = Field(300.0, gt=0)
@@ -154,20 +205,31 @@ class Safety(_Strict):
 
 
 class Faults(_Strict):
+    SECTION: ClassVar[str] = "faults"
     policy: Literal["pause", "abort"] = "pause"
-    retries: int = Field(3, ge=0, le=50)
-    backoff_s: float = Field(1.0, ge=0)
+    # Never read: the drivers retry with the lab configuration's per-instrument settings. Refused
+    # when written, so a procedure does not seem to set what it does not.
+    retries: int | None = None
+    backoff_s: float | None = None
     max_dropped_frames: int = Field(0, ge=0)  # per record step; more and the step is recorded again
     max_rerecords: int = Field(3, ge=0)  # attempts at one step before the fault policy applies
 
+    @field_validator("retries", "backoff_s")
+    @classmethod
+    def _unused(cls, v: Any, info: ValidationInfo) -> Any:
+        raise ValueError(f"is not used: the drivers' {info.field_name} are set per instrument in the lab "
+                         f"configuration (chamber.{info.field_name}, table.{info.field_name}); remove it")
+
 
 class Monitor(_Strict):
+    SECTION: ClassVar[str] = "monitor"
     enabled: bool = True  # log 1 s means of the IMU (and the chamber) while ramping and soaking
     average_s: float = Field(1.0, gt=0)
 
 
 class MountCheck(_Strict):
     """After each remount (and at preflight) the accelerometer must show the planned axis up."""
+    SECTION: ClassVar[str] = "mount_check"
 
     enabled: bool = True
     max_angle_deg: float = Field(10.0, gt=0, le=45)  # planned up axis vs measured specific force (45: ambiguous)
@@ -178,12 +240,14 @@ class MountCheck(_Strict):
 
 class Resume(_Strict):
     """What `labrunner resume` may skip when the lab was left running."""
+    SECTION: ClassVar[str] = "resume"
 
     in_place: bool = True  # IMU still mounted as planned and chamber near the setpoint: no remount, no ramp
     chamber_tolerance_c: float = Field(2.0, gt=0, le=20)  # "near": within this of the next step's setpoint
 
 
 class Fit(_Strict):
+    SECTION: ClassVar[str] = "fit"
     run: bool = True
     polynomial_order: int = Field(3, ge=0, le=6)
     rbf: bool = True
@@ -349,7 +413,31 @@ def _cross_checks(model: ProcedureModel, positions: dict[tuple[Any, ...], int], 
                 return f"{source}:{positions[path[:n]]}"
         return source
 
+    # First the counts the plan would expand to, before anything expands it.
+    t = model.temperatures
+    n_temps = len(t.list_c) if t.list_c is not None else math.floor(
+        (t.stop_c - t.start_c) / t.step_c + 1e-9) + 1  # type: ignore[operator]
+    r = model.rates
+    n_rates = len(r.list_dps) if r.list_dps is not None else 4 * round(
+        r.triangular.max_dps / r.triangular.step_dps)  # type: ignore[union-attr]
     problems = []
+    if n_temps > MAX_TEMPERATURES:
+        problems.append(f"{at('temperatures')}: temperatures: {n_temps:,} temperatures; at most {MAX_TEMPERATURES}")
+    if n_rates > MAX_RATES:
+        problems.append(f"{at('rates')}: rates: {n_rates:,} rate steps; at most {MAX_RATES}")
+    n_steps = n_temps * n_rates * len(model.orientations)
+    if not problems and n_steps > MAX_STEPS:
+        problems.append(f"{at('orientations')}: {len(model.orientations)} orientations x {n_temps} temperatures x "
+                        f"{n_rates} rates = {n_steps:,} record steps; at most {MAX_STEPS:,}")
+    frames = model.record_s * model.sample_rate_hz
+    if frames > MAX_FRAMES_PER_RECORD:
+        problems.append(f"{at('record_s')}: record_s x sample_rate_hz = {frames:,.0f} frames per record; at most "
+                        f"{MAX_FRAMES_PER_RECORD:,}")
+    if model.monitor.average_s * model.sample_rate_hz < 1.0 - 1e-9:
+        problems.append(f"{at('monitor', 'average_s')}: monitor.average_s must be at least one IMU frame "
+                        f"(1 / sample_rate_hz = {1.0 / model.sample_rate_hz:g} s)")
+    if problems:
+        return problems
     s = model.safety
     temps = model.temperatures.values()
     bad = [t for t in temps if not s.chamber_min_c <= t <= s.chamber_max_c]
@@ -364,7 +452,6 @@ def _cross_checks(model: ProcedureModel, positions: dict[tuple[Any, ...], int], 
         problems.append(f"{at('rates')}: rates {fast[0]} deg/s exceeds safety.max_rate_dps ({s.max_rate_dps})")
     if model.record_poll_s > model.record_s:
         problems.append(f"{at('record_poll_s')}: record_poll_s must not exceed record_s")
-    frames = model.record_s * model.sample_rate_hz
     if abs(frames - round(frames)) > 1e-6 or round(frames) < 1:
         problems.append(f"{at('record_s')}: record_s x sample_rate_hz must be a whole number of frames")
     return problems

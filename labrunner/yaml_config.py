@@ -1,21 +1,39 @@
 """Load YAML into a pydantic model; errors name file, line and key: `x.yaml:14: soak.tolerance_c must be > 0`.
 
 YAML is composed safely (no arbitrary objects), keeping each node's position, so a
-validation error on ('soak', 'tolerance_c') points at the line of that key.
+validation error on ('soak', 'tolerance_c') points at the line of that key. This is the
+one YAML reader of labrunner (procedures, lab and sim configurations, IMU models): it refuses
+what could hang or exhaust a run before anything is built from it: a document over
+`MAX_DOCUMENT_BYTES`, duplicate keys (YAML would silently keep the last), more than
+`MAX_ALIASES` aliases or a document whose aliases expand past `MAX_NODES` values (an alias
+bomb), nesting deeper than `MAX_DEPTH`, and numbers of absurd length.
+
+Numbers a schema uses get a finite, physical range (`Range`), listed in one table per schema
+(`procedure.RANGES`, `lab.RANGES`, `sim_config.RANGES`) and checked by `RangedModel` (pydantic
+schemas) or `check_ranges` (plain mappings) before any other check computes with them.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import difflib
+import math
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 from labrunner.errors import UserError
 
 M = TypeVar("M", bound=BaseModel)
+
+MAX_DOCUMENT_BYTES = 1_000_000  # a procedure or configuration is a few kB; 1 MB leaves room for a big IMU model
+MAX_ALIASES = 100  # a hand-written file needs a few
+MAX_NODES = 100_000  # values once aliases are expanded: stops a "billion laughs" before it is walked
+MAX_DEPTH = 40  # mappings and lists within each other
+MAX_NUMBER_CHARS = 64  # a number written with more characters than this is not a physical quantity
 
 
 class ConfigError(UserError):
@@ -24,6 +42,184 @@ class ConfigError(UserError):
     def __init__(self, messages: list[str]) -> None:
         self.messages = messages
         super().__init__("\n".join(messages))
+
+
+# --- ranges ---------------------------------------------------------------------------------------
+
+
+def show_number(value: Any) -> str:
+    """A value for a message: huge integers by their size (their digits could be thousands)."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**15:
+        return f"{'-' if value < 0 else ''}an integer of {value.bit_length()} bits"
+    if isinstance(value, float):
+        return f"{value:g}"
+    return repr(value)
+
+
+@dataclass(frozen=True)
+class Range:
+    """The values a number may take: finite, within lo..hi (inclusive), whole if `integer`."""
+
+    lo: float
+    hi: float
+    unit: str = ""
+    integer: bool = False
+
+    def describe(self) -> str:
+        return f"{self.lo:g}..{self.hi:g}{' ' + self.unit if self.unit else ''}"
+
+    def problem(self, value: Any) -> str | None:
+        """Why `value` is not allowed (as the end of a sentence naming the key), or None."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            kind = "a whole number" if self.integer else "a number"
+            return f"must be {kind} in {self.describe()}, got {value!r}"
+        if isinstance(value, float):
+            if not math.isfinite(value):
+                return f"must be a finite number in {self.describe()}, got {value}"
+            if self.integer and not value.is_integer():
+                return f"must be a whole number in {self.describe()}, got {value:g}"
+        if not self.lo <= value <= self.hi:
+            return f"must be in {self.describe()}, got {show_number(value)}"
+        return None
+
+
+class RangedModel(BaseModel):
+    """A strict schema section (unknown keys refused) whose numbers are checked against a range table.
+
+    `SECTION` is the section's dotted path ("" at the top, "soak", "rates.triangular"); `RANGES`
+    maps a field's full dotted path to its `Range`. A ranged field takes a number (a list field: a
+    list of numbers) as written, never text or a boolean (`record_s: true` is not 1 s), and the
+    range is checked before the section's own validators run."""
+
+    model_config = ConfigDict(extra="forbid")
+    SECTION: ClassVar[str] = ""
+    RANGES: ClassVar[Mapping[str, Range]] = {}
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _in_range(cls, value: Any, info: ValidationInfo) -> Any:
+        name = info.field_name or ""
+        r = cls.RANGES.get(f"{cls.SECTION}.{name}" if cls.SECTION else name)
+        if r is None or value is None:
+            return value
+        if isinstance(value, list):
+            for i, item in enumerate(value):
+                problem = r.problem(item)
+                if problem:
+                    raise ValueError(f"[{i}] {problem}")
+            return value
+        problem = r.problem(value)
+        if problem:
+            raise ValueError(problem)
+        return value
+
+
+def _walk(data: Any, parts: list[str], path: tuple[Any, ...]) -> Iterator[tuple[tuple[Any, ...], Any]]:
+    """(path, value) of every value at a dotted path with `[]` list wildcards, as far as the data go."""
+    if not parts:
+        yield path, data
+        return
+    head, rest = parts[0], parts[1:]
+    wildcard = head.endswith("[]")
+    key = head[:-2] if wildcard else head
+    if not isinstance(data, Mapping) or key not in data:
+        return
+    value = data[key]
+    if wildcard:
+        if isinstance(value, list):
+            for i, item in enumerate(value):
+                yield from _walk(item, rest, path + (key, i))
+        return
+    yield from _walk(value, rest, path + (key,))
+
+
+def check_ranges(data: Any, ranges: Mapping[str, Range], positions: Mapping[tuple[Any, ...], int],
+                 source: str) -> list[str]:
+    """Range problems of a plain mapping (a sim configuration), one located line each."""
+    problems = []
+    for dotted, r in ranges.items():
+        for path, value in _walk(data, dotted.split("."), ()):
+            if value is None:
+                continue
+            problem = r.problem(value)
+            if problem:
+                problems.append(f"{_located(source, positions, path)}: {_dotted(path)} {problem}")
+    return problems
+
+
+def did_you_mean(word: str, known: Any) -> str:
+    """' (did you mean 'x'?)' when a known name is close to `word`, else ''."""
+    close = difflib.get_close_matches(str(word), [str(k) for k in known], n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+# --- reading YAML -----------------------------------------------------------------------------------
+
+
+class _Refused(Exception):
+    def __init__(self, line: int | None, message: str) -> None:
+        self.line = line
+        self.message = message
+
+
+class _Loader(yaml.SafeLoader):
+    """The safe loader, counting aliases as they are composed (the line of the one too many)."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self.aliases = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:  # type: ignore[override]
+        if self.check_event(yaml.AliasEvent):
+            self.aliases += 1
+            if self.aliases > MAX_ALIASES:
+                raise _Refused(self.peek_event().start_mark.line + 1,
+                               f"more than {MAX_ALIASES} YAML aliases (*name); write the values out")
+        return super().compose_node(parent, index)  # type: ignore[no-any-return]
+
+
+_NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+
+
+def _check_tree(root: yaml.Node) -> None:
+    """Duplicate keys, depth, number lengths and the expanded size of a composed document."""
+    sizes: dict[int, int] = {}  # id(node) -> values under it once aliases are expanded
+    open_nodes: set[int] = set()
+
+    def size(node: yaml.Node, depth: int) -> int:
+        line = node.start_mark.line + 1
+        if id(node) in sizes:
+            return sizes[id(node)]
+        if id(node) in open_nodes:
+            raise _Refused(line, "an alias refers to the mapping or list it is part of (a recursive document)")
+        if depth > MAX_DEPTH:
+            raise _Refused(line, f"nested more than {MAX_DEPTH} levels deep")
+        n = 1
+        if isinstance(node, yaml.ScalarNode):
+            if node.tag in _NUMBER_TAGS and len(node.value) > MAX_NUMBER_CHARS:
+                raise _Refused(line, f"a number written with {len(node.value):,} characters")
+        else:
+            open_nodes.add(id(node))
+            if isinstance(node, yaml.MappingNode):
+                seen: dict[Any, int] = {}
+                for key_node, value_node in node.value:
+                    if isinstance(key_node, yaml.ScalarNode) and key_node.tag != "tag:yaml.org,2002:merge":
+                        key_line = key_node.start_mark.line + 1
+                        if key_node.value in seen:
+                            raise _Refused(key_line, f"duplicate key '{key_node.value}' (first at line "
+                                                     f"{seen[key_node.value]}); each key may appear once")
+                        seen[key_node.value] = key_line
+                    n += size(key_node, depth + 1) + size(value_node, depth + 1)
+            else:
+                for item in node.value:
+                    n += size(item, depth + 1)
+            open_nodes.discard(id(node))
+        if n > MAX_NODES:
+            raise _Refused(line, f"the document expands to more than {MAX_NODES:,} values (aliases expanded)")
+        sizes[id(node)] = n
+        return n
+
+    size(root, 0)
 
 
 def _positions(node: yaml.Node, path: tuple[Any, ...], out: dict[tuple[Any, ...], int]) -> None:
@@ -40,18 +236,37 @@ def _positions(node: yaml.Node, path: tuple[Any, ...], out: dict[tuple[Any, ...]
 
 def load_yaml(text: str, source: str) -> tuple[Any, dict[tuple[Any, ...], int]]:
     """Parse YAML safely; returns the data and a map from key path to line number."""
+    if len(text.encode("utf-8", errors="replace")) > MAX_DOCUMENT_BYTES:
+        raise ConfigError([f"{source}: the document is larger than {MAX_DOCUMENT_BYTES:,} bytes; a procedure or "
+                           "configuration is a few kB"])
+    loader: _Loader | None = None
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.load(text, Loader=yaml.SafeLoader)
+        loader = _Loader(text)
+        node = loader.get_single_node()
+        if node is not None:
+            _check_tree(node)
+        data = loader.construct_document(node) if node is not None else None
+    except _Refused as exc:
+        line = f":{exc.line}" if exc.line else ""
+        raise ConfigError([f"{source}{line}: {exc.message}"]) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = f":{mark.line + 1}" if mark else ""
         problem = exc.problem or str(exc)
         raise ConfigError([f"{source}{line}: not valid YAML: {problem}"]) from None
+    except yaml.reader.ReaderError as exc:  # a character YAML does not allow (binary data, control codes)
+        at = text[: exc.position].count("\n") + 1
+        raise ConfigError([f"{source}:{at}: not valid YAML: character U+{exc.character:04X} is not allowed "
+                           "(is this a text file?)"]) from None
     except yaml.YAMLError as exc:
         raise ConfigError([f"{source}: not valid YAML: {exc}"]) from None
-    except (RecursionError, ValueError, TypeError) as exc:  # pathological input (deep nesting, huge numbers)
+    except RecursionError:
+        raise ConfigError([f"{source}: not valid YAML: nested too deeply"]) from None
+    except (ValueError, TypeError, OverflowError) as exc:  # pathological input the checks above did not foresee
         raise ConfigError([f"{source}: cannot read YAML: {type(exc).__name__}"]) from None
+    finally:
+        if loader is not None:
+            loader.dispose()
     positions: dict[tuple[Any, ...], int] = {}
     if node is not None:
         _positions(node, (), positions)
@@ -65,6 +280,8 @@ def _describe(err: Mapping[str, Any]) -> str:
         return "is required"
     if kind == "extra_forbidden":
         return "is not a known key"
+    if kind == "finite_number":
+        return "must be a finite number"
     if kind == "greater_than":
         return f"must be > {ctx.get('gt')}"
     if kind == "greater_than_equal":
@@ -120,6 +337,32 @@ def _dotted(loc: tuple[Any, ...]) -> str:
     return "".join(parts) or "(top level)"
 
 
+def _fields_at(model: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
+    """The field names of the schema section at `loc` (for "did you mean"), [] when unknown."""
+    current: Any = model
+    for part in loc:
+        if isinstance(part, int):
+            continue  # a list's item: the list's item type was taken below
+        if not (isinstance(current, type) and issubclass(current, BaseModel)) or part not in current.model_fields:
+            return []
+        current = _section_type(current.model_fields[part].annotation)
+    if isinstance(current, type) and issubclass(current, BaseModel):
+        return list(current.model_fields)
+    return []
+
+
+def _section_type(annotation: Any) -> Any:
+    """The BaseModel inside an annotation (`Soak`, `Soak | None`, `list[Orientation]`), or None."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    if get_origin(annotation) is not None:  # X | None, list[X], Optional[X]
+        for arg in get_args(annotation):
+            found = _section_type(arg)
+            if found is not None:
+                return found
+    return None
+
+
 def validate(model: type[M], data: Any, positions: Mapping[tuple[Any, ...], int], source: str) -> M:
     """Validate parsed YAML into `model`, raising ConfigError with one located line per problem."""
     if not isinstance(data, Mapping):
@@ -131,21 +374,40 @@ def validate(model: type[M], data: Any, positions: Mapping[tuple[Any, ...], int]
         lines = []
         for err in exc.errors(include_url=False):
             loc = tuple(err.get("loc", ()))
-            lines.append(f"{_located(source, positions, loc)}: {_dotted(loc)} {_describe(err)}")
+            what = _describe(err)
+            if err.get("type") == "extra_forbidden" and loc:
+                what += did_you_mean(loc[-1], _fields_at(model, tuple(p for p in loc[:-1] if not (
+                    isinstance(p, str) and p.startswith(("function-", "union["))))))
+            elif err.get("type") == "value_error" and what.startswith("["):
+                # A ranged list's item: the index joins the key path (`rates.list_dps[2] must be ...`).
+                index, _, what = what.partition("] ")
+                loc = loc + (int(index[1:]),)
+            lines.append(f"{_located(source, positions, loc)}: {_dotted(loc)} {what}")
         raise ConfigError(lines) from None
 
 
 def read_text(path: str | Path) -> str:
-    """A configuration file's text; a missing or unreadable file is a ConfigError naming it."""
+    """A configuration file's text; a missing, unreadable, oversized or non-UTF-8 file is a ConfigError
+    naming it (a file is read only up to the size limit, so a huge or endless one costs nothing)."""
     p = Path(path)
     try:
-        return p.read_text(encoding="utf-8")
+        with p.open("rb") as f:
+            raw = f.read(MAX_DOCUMENT_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError([f"{p}: file not found"]) from None
     except IsADirectoryError:
         raise ConfigError([f"{p}: is a directory; expected a YAML file"]) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError([f"{p}: cannot read: {exc}"]) from None
+    except OSError as exc:
+        raise ConfigError([f"{p}: cannot read: {exc.strerror or exc}"]) from None
+    if len(raw) > MAX_DOCUMENT_BYTES:
+        raise ConfigError([f"{p}: larger than {MAX_DOCUMENT_BYTES:,} bytes; a procedure or configuration is a "
+                           "few kB"])
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError([f"{p}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}); "
+                           "save the file as UTF-8"]) from None
 
 
 def load_model(model: type[M], path: str | Path) -> tuple[M, str]:

@@ -38,15 +38,15 @@ rates: {list_dps: [0, 10]}
 
 
 @pytest.mark.parametrize("text, expect", [
-    (BASE + "soak:\n  tolerance_c: 0\n", "x.yaml:6: soak.tolerance_c must be > 0"),
+    (BASE + "soak:\n  tolerance_c: 0\n", "x.yaml:6: soak.tolerance_c must be in 0.01..10 C, got 0"),
     (BASE + "soak:\n  tolerance_c: 0.2\n  max_wait_s: soon\n",
-     "x.yaml:7: soak.max_wait_s must be a number, got 'soon'"),
+     "x.yaml:7: soak.max_wait_s must be a number in 1..604800 s, got 'soon'"),
     (BASE + "soak: {on_timeout: explode}\n", "x.yaml:5: soak.on_timeout must be one of 'continue', 'pause' or 'abort'"),
     (BASE.replace("[z_up]", "[z_up, sideways]"), "x.yaml:3: orientations[1].name must be one of"),
     (BASE.replace("[z_up]", "[z_up, z_up]"), "orientation z_up is listed twice"),
-    (BASE + "record_s: -1\n", "x.yaml:5: record_s must be > 0"),
+    (BASE + "record_s: -1\n", "x.yaml:5: record_s must be in 0.01..86400 s, got -1"),
     (BASE + "unknown_key: 3\n", "x.yaml:5: unknown_key is not a known key"),
-    (BASE.replace("step_c: 10", "step_c: -10"), "x.yaml:2: temperatures.step_c must be > 0"),
+    (BASE.replace("step_c: 10", "step_c: -10"), "x.yaml:2: temperatures.step_c must be in 0.1..200 C, got -10"),
     (BASE.replace("{list_dps: [0, 10]}", "{list_dps: [0, 500]}"),
      "x.yaml:4: rates 500.0 deg/s exceeds safety.max_rate_dps"),
     (BASE.replace("stop_c: 30", "stop_c: 120"), "outside the safety limits"),
@@ -68,6 +68,6 @@ def test_cli_reports_a_bad_procedure_without_traceback(tmp_path):
     bad.write_text(BASE + "soak:\n  tolerance_c: -1\n")
     proc = cli("run", bad, "--sim", "--db", tmp_path / "x.db")
     assert proc.returncode == 2
-    assert f"{bad}:6: soak.tolerance_c must be > 0" in proc.stderr
+    assert f"{bad}:6: soak.tolerance_c must be in 0.01..10 C, got -1" in proc.stderr
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "x.db").exists()  # nothing started, nothing written

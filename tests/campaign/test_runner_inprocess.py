@@ -30,7 +30,7 @@ settle_s: 1
 record_s: 4
 record_poll_s: 2
 safety: {chamber_min_c: -40, chamber_max_c: 40, max_rate_dps: 150, imu_max_temp_c: 85}
-faults: {policy: pause, retries: 2, backoff_s: 0.5, max_rerecords: 2}
+faults: {policy: pause, max_rerecords: 2}
 fit: {run: false}
 """
 N_STEPS = 8  # 2 orientations x 2 temperatures x 2 rates
