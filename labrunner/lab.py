@@ -23,7 +23,7 @@ from labrunner.drivers.chamber_profiles import profile_from
 from labrunner.drivers.imu_serial import SerialImu
 from labrunner.drivers.protocols import Chamber, Imu, Operator, RateTable
 from labrunner.drivers.rate_table import SerialRateTable
-from labrunner.operator import ConsoleOperator  # the console operator lives there; kept importable here
+from labrunner.operator import ConsoleOperator, SimOperator  # the operators live there; importable here
 from labrunner.yaml_config import load_model, validate
 
 if TYPE_CHECKING:  # the sims are imported only when a dry run is built
@@ -140,21 +140,6 @@ def real_lab(config: LabConfig, *, max_rate_dps: float, operator: Operator | Non
                                         on_event=on_event)
     return Lab(chamber=chamber, table=table, imu=imu, operator=operator or ConsoleOperator(), clock=clock,
                config=config)
-
-
-class SimOperator:
-    """The dry run's operator: acknowledges at once and remounts the simulated IMU."""
-
-    def __init__(self, sim: SimLab, clock: Clock, remount_s: float = 300.0) -> None:
-        self.sim = sim
-        self.clock = clock
-        self.remount_s = remount_s
-
-    def remount(self, orientation: str, prompt: str) -> None:
-        log.info("simulated operator: remounting the IMU %s", orientation)
-        self.sim.power_off()
-        self.clock.sleep(self.remount_s)  # the time a person takes to open the door and turn the IMU
-        self.sim.remount(orientation)
 
 
 def simulated_lab(*, max_rate_dps: float, sim_config: Any = None, start_t: float = 0.0, orientation: str | None = None,

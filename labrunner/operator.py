@@ -1,4 +1,4 @@
-"""The operator at the terminal: a remount prompt that only a fresh Enter confirms.
+"""The operator: at the terminal, a remount prompt that only a fresh Enter confirms; in a dry run, simulated.
 
 A stray Enter typed ahead (while the chamber was still ramping to room temperature, or an
 extra one after the previous prompt) must not confirm the next remount. So before each
@@ -15,9 +15,13 @@ import os
 import select
 import sys
 import termios
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
+from labrunner.clock import Clock
 from labrunner.yaml_config import ConfigError
+
+if TYPE_CHECKING:  # the sims are imported only when a dry run is built
+    from labrunner.sims.lab import SimLab
 
 log = logging.getLogger(__name__)
 
@@ -74,4 +78,33 @@ class ConsoleOperator:
                                "run interactively or use --sim for a dry run"])
 
 
-__all__ = ["ConsoleOperator", "discard_typeahead", "read_line"]
+class SimOperator:
+    """The dry run's operator: acknowledges at once and remounts the simulated IMU.
+
+    The sim configuration's `operator:` section (`SimOperatorParams`) can make the first
+    `wrong_mounts` remounts of a session go wrong, to rehearse the mount check: the IMU is turned
+    to `mounts_as`, or (without it) the remount is skipped and the IMU stays as it was.
+    """
+
+    def __init__(self, sim: SimLab, clock: Clock, remount_s: float = 300.0) -> None:
+        self.sim = sim
+        self.clock = clock
+        self.remount_s = remount_s
+        self.wrong_left = sim.config.operator.wrong_mounts
+        self.mounts_as = sim.config.operator.mounts_as
+
+    def remount(self, orientation: str, prompt: str) -> None:
+        self.sim.power_off()
+        self.clock.sleep(self.remount_s)  # the time a person takes to open the door and turn the IMU
+        if self.wrong_left > 0:
+            self.wrong_left -= 1
+            actual = self.mounts_as or self.sim.mounted_orientation
+            log.info("simulated operator: asked for %s, mounts the IMU %s (%d wrong mount(s) left)", orientation,
+                     actual, self.wrong_left)
+        else:
+            actual = orientation
+            log.info("simulated operator: remounting the IMU %s", orientation)
+        self.sim.remount(actual)
+
+
+__all__ = ["ConsoleOperator", "SimOperator", "discard_typeahead", "read_line"]

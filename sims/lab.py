@@ -118,6 +118,16 @@ class SimLab:
         """What the operator does at a mounting prompt: power down, turn the IMU, power up."""
         self.world.remount(orientation, self.clock.now())
 
+    @property
+    def mounted_orientation(self) -> str:
+        """How the simulated IMU stands on the table now."""
+        return self.world.orientation
+
+    def restore(self, *, orientation: str, air_c: float, setpoint_c: float, powered_since: float, run: int) -> None:
+        """A resumed dry run's lab as the last session left it (`SimWorld.restore`)."""
+        self.world.restore(orientation=orientation, air_c=air_c, setpoint_c=setpoint_c, powered_since=powered_since,
+                           run=run)
+
     def close(self) -> None:
         log.debug("simulated lab closing")
         if isinstance(self.clock, VirtualClock):

@@ -31,6 +31,25 @@ class ImuThermalParams:
 
 
 @dataclass
+class SimOperatorParams:
+    """How the dry run's operator remounts: the first `wrong_mounts` remounts of a session go wrong,
+    turning the IMU to `mounts_as` (None: the remount is skipped, the IMU stays as it was)."""
+
+    wrong_mounts: int = 0
+    mounts_as: str | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.wrong_mounts, bool) or not isinstance(self.wrong_mounts, int) \
+                or not 0 <= self.wrong_mounts <= 1000:
+            raise ValueError(f"operator.wrong_mounts must be a whole number 0..1000, got {self.wrong_mounts!r}")
+        if self.mounts_as is not None:
+            try:
+                up_vector(str(self.mounts_as))
+            except ValueError as exc:
+                raise ValueError(f"operator.mounts_as: {exc}") from None
+
+
+@dataclass
 class SimLabConfig:
     """Everything that defines a simulated lab (loadable from a YAML/JSON sim configuration)."""
 
@@ -42,11 +61,13 @@ class SimLabConfig:
     imu_rate_hz: float = 50.0
     orientation: str = "z_up"
     faults: dict[str, Any] = field(default_factory=dict)
+    operator: SimOperatorParams = field(default_factory=SimOperatorParams)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SimLabConfig:
         """Build from a mapping; unknown keys are refused with their name."""
-        known = {"seed", "chamber", "table", "imu_thermal", "imu_model", "imu_rate_hz", "orientation", "faults"}
+        known = {"seed", "chamber", "table", "imu_thermal", "imu_model", "imu_rate_hz", "orientation", "faults",
+                 "operator"}
         unknown = set(data) - known
         if unknown:
             raise ValueError(f"unknown sim configuration key(s): {', '.join(sorted(unknown))}")
@@ -73,7 +94,7 @@ class SimLabConfig:
         return cls(seed=seed, chamber=sub(ChamberParams, "chamber"), table=sub(TableParams, "table"),
                    imu_thermal=sub(ImuThermalParams, "imu_thermal"), imu_model=imu_model,
                    imu_rate_hz=float(data.get("imu_rate_hz", 50.0)), orientation=str(data.get("orientation", "z_up")),
-                   faults=dict(data.get("faults") or {}))
+                   faults=dict(data.get("faults") or {}), operator=sub(SimOperatorParams, "operator"))
 
 
 class SimWorld:
@@ -171,6 +192,21 @@ class SimWorld:
             self.powered = True
             self.run += 1
             self.t_on = float(t)
+
+    def restore(self, *, orientation: str, air_c: float, setpoint_c: float, powered_since: float, run: int) -> None:
+        """Start as a lab left running (a resumed dry run): the IMU mounted `orientation` and powered since
+        `powered_since` in run `run`, the chamber air at `air_c` (the IMU case with it) heading for `setpoint_c`."""
+        up_vector(orientation)
+        with self.lock:
+            self.chamber.air_c = float(air_c)
+            self.chamber.setpoint_c = float(setpoint_c)
+            self.case_c = float(air_c)
+            self._hist[0] = (self.chamber.t, self.case_c, self.chamber.air_c)
+            self._n = 1
+            self.orientation = orientation
+            self.powered = True
+            self.t_on = float(powered_since)
+            self.run = int(run)
 
     def remount(self, orientation: str, t: float) -> None:
         """Power down, turn the IMU to another orientation on the table, power up (a new run)."""
