@@ -26,8 +26,10 @@ def fit_and_store(store: Store, campaign_id: int, fit_cfg: Fit, out_dir: str | P
     from labrunner.calibration.fit import FitOptions, fit_campaign
     from labrunner.calibration.outputs import write_fit_files
     from labrunner.calibration.report import summary_markdown
+    from labrunner.data_source import step_progress
 
     data = store.campaign_data(campaign_id)
+    data.provenance.update(step_progress(store, campaign_id))
     provenance = {**data.provenance, "end_of_run": True}
     defaults = FitOptions()
     options = FitOptions(poly_order=fit_cfg.polynomial_order, rbf_variants=defaults.rbf_variants if fit_cfg.rbf else (),

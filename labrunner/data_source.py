@@ -1,4 +1,5 @@
-"""Where analysis data comes from: a campaign CSV or a labrunner SQLite store, as one frame."""
+"""Where analysis data comes from: a campaign CSV or a labrunner store (a SQLite file or a PostgreSQL URL),
+as one frame."""
 
 from __future__ import annotations
 
@@ -9,8 +10,7 @@ from typing import Any
 import pandas as pd
 
 from labrunner.campaign_csv import CampaignDataError, read_campaign
-
-SQLITE_MAGIC = b"SQLite format 3\x00"
+from labrunner.store_address import StoreAddress, is_store, is_url, store_address
 
 
 @dataclass
@@ -19,31 +19,40 @@ class CampaignData:
 
     frame: pd.DataFrame
     provenance: dict[str, Any] = field(default_factory=dict)
+    # The store read, password and all, to store a fit back into (provenance["source"] shows it masked).
+    store: StoreAddress | None = field(default=None, repr=False, compare=False)
 
 
-def is_sqlite(path: str | Path) -> bool:
-    try:
-        with open(path, "rb") as fh:
-            return fh.read(16) == SQLITE_MAGIC
-    except OSError:
-        return False
+def step_progress(store: Any, campaign_id: int) -> dict[str, int]:
+    """Steps planned and recorded (status done) of a stored campaign: a fit says when they differ."""
+    steps = store.steps_frame(campaign_id)
+    return {"steps_planned": int(len(steps)), "steps_recorded": int((steps["status"] == "done").sum())}
 
 
-def load_campaign_data(path: str | Path, campaign: int | None = None, *, include_monitor: bool = False) -> CampaignData:
+def load_campaign_data(path: str | Path | StoreAddress, campaign: int | None = None, *,
+                       include_monitor: bool = False) -> CampaignData:
     """Load a campaign CSV or a store database (its latest campaign, or `campaign`).
 
     From a store, `include_monitor` adds the 1 s monitor rows logged while ramping and soaking
     (what a diagnosis of thermal lag or hysteresis needs); a fit uses the record steps only.
     """
+    if isinstance(path, StoreAddress) or is_url(path):
+        return _from_store(store_address(path), campaign, include_monitor)
     p = Path(path)
     if not p.exists():
         raise CampaignDataError(str(p), "file not found")
     if p.is_dir():
         raise CampaignDataError(str(p), "is a directory; expected a campaign CSV or a labrunner database file")
-    if is_sqlite(p):
-        from labrunner.store import Store
-
-        with Store.open_existing(p) as store:
-            return store.campaign_data(campaign, include_monitor=include_monitor)
+    if is_store(p):
+        return _from_store(store_address(p), campaign, include_monitor)
     frame = read_campaign(p)
     return CampaignData(frame=frame, provenance={"source": str(p.resolve()), "kind": "csv", "rows": len(frame)})
+
+
+def _from_store(address: StoreAddress, campaign: int | None, include_monitor: bool) -> CampaignData:
+    from labrunner.store import Store
+
+    with Store.open_existing(address) as store:
+        data = store.campaign_data(campaign, include_monitor=include_monitor)
+        data.provenance.update(step_progress(store, int(data.provenance["campaign_id"])))
+        return data

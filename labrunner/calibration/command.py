@@ -11,9 +11,9 @@ from typing import Any
 
 from labrunner import api
 from labrunner.commands.types import count
-from labrunner.data_source import is_sqlite
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
+from labrunner.store_address import data_arg, is_store
 
 from .evaluation import SPLITS
 from .fit import FitOptions
@@ -34,7 +34,8 @@ examples:
   labrunner fit quick.db --out fit/ --json fit.json         # models, C header and tables in fit/
   labrunner fit quick.csv --order cv --rbf hybrid          # polynomial order by cross-validation
   labrunner fit quick.db --json - --quiet | jq .evaluation  # the JSON alone, on stdout""")
-    p.add_argument("data", metavar="DATA", help="campaign CSV or labrunner database (DB)")
+    p.add_argument("data", type=data_arg, metavar="DATA",
+                   help="campaign CSV or labrunner store (DB: a SQLite file or a PostgreSQL URL)")
     p.add_argument("--campaign", type=int, default=None, metavar="N",
                    help="campaign id in a database holding several (default: the latest)")
     p.add_argument("--json", metavar="FILE", help="write models, evaluation and provenance as JSON ('-' for stdout)")
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     options = _options(args)
     # Before the fit is computed and stored: a refused output leaves the store as it was. (The header
     # is read before anything here opens the store, so no SQLite lock can be dropped by it.)
-    store = args.data if is_sqlite(args.data) else None
+    store = args.data if is_store(args.data) else None
     if args.json:
         check_output(args.json, store=store, inputs=[args.data], force=args.force, option="--json",
                      allow_stdout=True)
@@ -94,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
 
     progress(f"loading {args.data}")
     result = api.fit(args.data, campaign=args.campaign, options=options, save=not args.no_store, progress=progress)
+    # Said on stderr whatever --quiet says: a model of half the data must not pass unnoticed.
+    for warning in ([result.unfinished] if result.unfinished else []) + result.not_exported:
+        print(f"labrunner fit: warning: {warning}", file=sys.stderr, flush=True)
     text = summary_markdown(result)
     if args.json != "-":
         print(text)

@@ -214,6 +214,13 @@ def _rbf_section(p: str, model: RbfModel) -> list[str]:
     if model.variant == "triad":
         out += ["        int base = k < 3 ? 0 : 3;",
                 "        x[0] = y[base]; x[1] = y[base + 1]; x[2] = y[base + 2]; x[3] = temp_c;"]
+    elif model.variant == "hybrid":  # bias(T): the temperature is the only input, held at the training edges
+        out += [f"        const lr_rbf_net *net = {p}nets[k];",
+                "        x[0] = temp_c < net->in_min[0] ? net->in_min[0]"
+                " : (temp_c > net->in_max[0] ? net->in_max[0] : temp_c);",
+                "        if (temp_c < net->in_min[0] - (net->in_max[0] - net->in_min[0]) * "
+                f"{_num(model.input_margin)} || temp_c > net->in_max[0] + (net->in_max[0] - net->in_min[0]) * "
+                f"{_num(model.input_margin)}) outside = 1;"]
     else:
         out += ["        x[0] = y[k]; x[1] = temp_c;"]
     out += [f"        u[k] += lr_rbf_eval({p}nets[k], x, {_num(model.input_margin)}, &outside);",
@@ -233,8 +240,9 @@ def c_header(poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
         " * Compensation (paper Eq. 11): u = y + dU(y, T) (RBF) or u = (I + S(T))^-1 (y - b(T)) (polynomial).",
         " * Functions return 1 when the sample is outside the fitted range (extrapolation). */",
     ]
-    if comment:
-        lines += ["/* " + comment.replace("*/", "* /") + " */"]
+    if comment:  # provenance, one item a line
+        body = comment.replace("*/", "* /").splitlines()
+        lines += ["/* " + body[0]] + [" * " + b for b in body[1:]] + [" */"]
     lines += [f"#ifndef {guard}", f"#define {guard}", _COMMON]
     if poly is not None:
         lines += _poly_section(prefix, poly) + [""]

@@ -14,6 +14,7 @@ from labrunner.errors import UserError
 from labrunner.version import __version__
 
 from .evaluation import SPLITS, SplitResult, evaluate
+from .gain import GainCheck, check_models
 from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_model
 from .records import RecordOptions, Records, TemperatureSteps, frame_arrays, segment_records, temperature_steps
 from .six_position import StepCalibration, calibrate_steps
@@ -87,7 +88,8 @@ def fit_models(records: Records, options: FitOptions, progress: Progress | None 
     """Six-position per step, thermal polynomials and RBF networks from the given records."""
     if len(records) == 0:
         raise ValueError("no stable records to fit")
-    steps = temperature_steps(records, options.records.step_gap_c, options.records.max_step_width_c)
+    ro = options.records
+    steps = temperature_steps(records, ro.step_gap_c, ro.max_step_width_c, ro.continuous_gap_c, ro.ramp_bin_c)
     notes: list[str] = []
     if progress:
         progress(f"six-position calibration at {len(steps)} temperature step(s)")
@@ -136,14 +138,33 @@ class FitResult:
     # The rows fitted, kept (not copied, not serialised) for the figures of static samples: the
     # norms before and after compensation and the Allan deviation need samples, not record means.
     frame: pd.DataFrame | None = field(default=None, repr=False)
+    # The measured gain of every model (evaluation name -> check): a model whose gain departs from the
+    # fitted scale by more than gain.LIMIT is not exported.
+    gains: dict[str, GainCheck] = field(default_factory=dict)
 
     @property
     def polynomial(self) -> PolyModel:
         return self.models.polynomial
 
     @property
-    def rbf(self) -> RbfModel | None:
+    def rbf_trained(self) -> RbfModel | None:
+        """The network variant asked for export, whether or not its gain allows it."""
         return self.models.rbf.get(self.options.rbf_export) if self.options.rbf_export else None
+
+    @property
+    def rbf(self) -> RbfModel | None:
+        """The exported network: the variant asked for, if its measured gain passes."""
+        model = self.rbf_trained
+        check = self.gains.get(f"rbf_{self.options.rbf_export}")
+        return None if model is None or (check is not None and not check.passed) else model
+
+    @property
+    def not_exported(self) -> list[str]:
+        """Why a model asked for is not in the model files (sentences)."""
+        check = self.gains.get(f"rbf_{self.options.rbf_export}")
+        if self.rbf_trained is None or check is None or check.passed:
+            return []
+        return [f"the RBF network {check.sentence()}; rbf.json and the C header hold the polynomial only"]
 
     @property
     def not_fitted(self) -> list[str]:
@@ -160,6 +181,30 @@ class FitResult:
             if r.skipped:
                 out.append(f"evaluation '{r.name}' skipped: {r.skipped}")
         return out
+
+    @property
+    def combined(self) -> list[str]:
+        """Terms fitted only in combination, with the use the model is valid for (sentences)."""
+        return [c for p in self.polynomial.triads().values() for c in p.combined]
+
+    @property
+    def unfinished(self) -> str | None:
+        """A sentence when the data are of a campaign not recorded to its end, else None."""
+        prov = self.provenance
+        planned, recorded = prov.get("steps_planned"), prov.get("steps_recorded")
+        if planned is None or recorded is None or recorded >= planned:
+            return None
+        return (f"unfinished campaign: {recorded} of {planned} planned steps recorded (status "
+                f"{prov.get('status', '?')}); the models are fitted to what was recorded only")
+
+    def export_provenance(self) -> dict[str, Any]:
+        """What the model files carry about their origin: the data's provenance, how complete the
+        campaign was, what was not fitted or only in combination, and why."""
+        prov = dict(self.provenance)
+        prov["unfinished"] = self.unfinished
+        prov["not_fitted"] = self.not_fitted
+        prov["combined"] = self.combined
+        return json_clean(prov)
 
     @property
     def notes(self) -> list[str]:
@@ -182,7 +227,7 @@ class FitResult:
         per-step calibration, evaluation."""
         return json_clean({
             "format": "labrunner-calibration/1",
-            "provenance": self.provenance,
+            "provenance": self.export_provenance(),
             "data": self.data_summary,
             "options": _options_dict(self.options),
             "not_fitted": self.not_fitted,
@@ -195,6 +240,8 @@ class FitResult:
             },
             "six_position": {t: [c.to_dict() for c in cals] for t, cals in self.models.six_position.items()},
             "evaluation": [r.to_dict() for r in self.evaluation],
+            "gains": {k: g.to_dict() for k, g in self.gains.items()},
+            "not_exported": self.not_exported,
             "timings_s": self.timings_s,
         })
 
@@ -267,6 +314,9 @@ def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provena
     except ValueError as exc:
         raise UserError(f"cannot fit: {exc}") from None
     timings["fit"] = time.perf_counter() - t1
+    if progress:
+        progress("gain of every model over the training envelope")
+    gains = check_models(dict(models.compensators()), models.polynomial, records, opt.seed)
     evaluation: list[SplitResult] = []
     if opt.evaluate:
         t2 = time.perf_counter()
@@ -284,4 +334,4 @@ def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provena
     prov["fitted_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     return FitResult(options=opt, models=models, records=records, evaluation=evaluation, provenance=prov,
                      data_summary=summarize_data(frame, records, models.steps), timings_s=timings,
-                     frame=frame)
+                     frame=frame, gains=gains)

@@ -92,3 +92,30 @@ def weighted_lstsq(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None,
                 if np.all(np.isfinite(kv[:, j])):
                     cov[j][np.ix_(cols, cols)] = (pinv * kv[:, j]) @ pinv.T
     return LinearFit(coef=coef, cov=cov, identifiable=ident, dof=int(dof), sigma2=sigma2, residual=resid)
+
+
+def gauge_lstsq(x: np.ndarray, y: np.ndarray, w: np.ndarray, preferred: np.ndarray,
+                identifiable: np.ndarray) -> np.ndarray:
+    """(p, k) a least-squares solution that fixes what the design leaves free: the identifiable
+    parameters as `weighted_lstsq` fits them, the free directions resolved by the smallest norm of
+    the columns not `preferred` (in units of their weighted column norms).
+
+    The calibration uses it where orientations cannot separate bias from scale factor and
+    misalignment: the fit then reproduces each seen orientation's output exactly and puts what is
+    common to them in the bias (preferred), only their differences in S.
+    """
+    w = np.asarray(w, dtype=float)
+    w = w / w.mean() if w.size and w.mean() > 0 else w
+    sw = np.sqrt(w)[:, None]
+    xw = x * sw
+    norms = np.linalg.norm(xw, axis=0)
+    live = norms > 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)
+    # A preferred column costs (1 / CHEAP)^2 of a free one: the minimum-norm solution puts the free
+    # directions into it. 1e3 keeps the system's conditioning far from the rank cut below.
+    cheap = 1e3
+    d = np.where(live, np.where(preferred, cheap, 1.0) / np.where(live, norms, 1.0), 0.0)
+    a = xw[:, live] * d[live]
+    sol, *_ = np.linalg.lstsq(a, np.asarray(y, dtype=float).reshape(x.shape[0], -1) * sw, rcond=1e-10)
+    coef = np.zeros((x.shape[1], sol.shape[1]))
+    coef[live] = sol * d[live][:, None]
+    return coef

@@ -25,19 +25,37 @@ def draw_figures(result: FitResult, out: Path) -> tuple[list[str], str]:
     return list(report.written), report.markdown()
 
 
+def header_comment(result: FitResult) -> str:
+    """The C header's provenance block: software, data, campaign and how complete it was, what was not
+    fitted (or only in combination) and why; one item a line."""
+    prov = result.provenance
+    lines = [f"labrunner {prov.get('software', {}).get('version', '?')}, fitted {prov.get('fitted_at', '?')}",
+             f"data: {prov.get('source', '?')}"]
+    if prov.get("kind") == "store":
+        lines.append(f"campaign {prov.get('campaign_id', '?')} ({prov.get('campaign', '?')}), status "
+                     f"{prov.get('status', '?')}: {prov.get('steps_recorded', '?')} of "
+                     f"{prov.get('steps_planned', '?')} planned steps recorded")
+    else:
+        lines.append("campaign CSV: steps planned unknown")
+    if result.unfinished:
+        lines.append("WARNING: " + result.unfinished)
+    lines += [f"not fitted: {s}" for s in result.not_fitted] or ["not fitted: nothing"]
+    lines += [f"fitted in combination: {s}" for s in result.combined]
+    lines += [f"not exported: {s}" for s in result.not_exported]
+    return "\n".join(lines)
+
+
 def write_fit_files(result: FitResult, out: Path, summary: str | None = None) -> tuple[list[str], str]:
     """Write the model JSON files, the C header, the figures, the summary and the evaluation tables into
     `out`; returns the names written and the figures section appended to summary.md."""
     out.mkdir(parents=True, exist_ok=True)
-    prov = result.provenance
+    prov = result.export_provenance()
     save_model(result.polynomial, out / "polynomial.json", prov)
     written = ["polynomial.json"]
     if result.rbf is not None:
         save_model(result.rbf, out / "rbf.json", prov)
         written.append("rbf.json")
-    comment = (f"labrunner {prov.get('software', {}).get('version', '?')}, data {prov.get('source', '?')}, "
-               f"fitted {prov.get('fitted_at', '?')}")
-    write_c_header(out / "imu_calibration.h", result.polynomial, result.rbf, comment=comment)
+    write_c_header(out / "imu_calibration.h", result.polynomial, result.rbf, comment=header_comment(result))
     figures, section = draw_figures(result, out)
     text = summary if summary is not None else summary_markdown(result)
     (out / "summary.md").write_text(text + "\n\n" + section + "\n")

@@ -7,9 +7,14 @@ Variants (``RbfModel.variant``):
 * ``triad``  one network per axis whose inputs are the whole triad's measured values and
   T, so cross-axis (misalignment) terms are visible to it; the per-axis network cannot
   tell a misaligned reading on a resting axis from a bias.
-* ``hybrid`` the polynomial model first, then per-axis networks (inputs as ``paper``)
+* ``hybrid`` the polynomial model first, then per-axis networks of the temperature alone
   trained on what the polynomial leaves: the polynomial carries the physics (scale,
-  misalignment, smooth thermal drift) and the network the non-polynomial remainder.
+  misalignment, smooth thermal drift) and the network the non-polynomial remainder of the
+  bias, bias(T). Its input is no raw output, so the compensated output stays linear in the
+  sensor's output with the fitted scale and misalignment: a real motion passes with the
+  fitted gain (`gain.py` measures it). The ``paper`` and ``triad`` networks see the raw
+  outputs and can learn a lookup of the calibration's reference levels instead; their
+  measured gain is reported and they are not exported when it departs from the fitted scale.
 
 Networks train on record means weighted by duration (see `rbf.py`), never on raw samples.
 """
@@ -72,8 +77,10 @@ class RbfModel:
             extrap = (temp_c < self.t_min_c) | (temp_c > self.t_max_c)
         for k, net in enumerate(self.networks):
             x = self.inputs(y, temp_c, k)
-            out[:, k] += net.predict(x)
             extrap |= net.outside(x, self.input_margin)
+            if self.variant == "hybrid":  # bias(T) held at its edge value beyond the training temperatures
+                x = np.clip(x, net.input_min, net.input_max)
+            out[:, k] += net.predict(x)
         return Compensated(values=out, extrapolated=extrap)
 
     def to_dict(self) -> dict[str, Any]:
@@ -101,6 +108,8 @@ def input_names(variant: str, channel: int) -> list[str]:
     if variant == "triad":
         base = 0 if channel < 3 else 3
         return [cols[base], cols[base + 1], cols[base + 2], "imu_temp_c"]
+    if variant == "hybrid":
+        return ["imu_temp_c"]
     return [cols[channel], "imu_temp_c"]
 
 
@@ -108,15 +117,25 @@ def network_inputs(variant: str, y: np.ndarray, temp_c: np.ndarray, channel: int
     if variant == "triad":
         base = 0 if channel < 3 else 3
         return np.column_stack([y[:, base:base + 3], temp_c])
+    if variant == "hybrid":
+        return np.asarray(temp_c, dtype=float)[:, None]
     return np.column_stack([y[:, channel], temp_c])
 
 
-def step_spacing(temp_c: np.ndarray, gap_c: float = 2.0) -> float:
-    """Median spacing of the distinct calibration temperatures (0 with fewer than two)."""
-    t = np.sort(np.asarray(temp_c, dtype=float))
-    if t.size < 2:
-        return 0.0
-    levels = t[np.concatenate(([True], np.diff(t) > gap_c))]
+def step_spacing(temp_c: np.ndarray, step: np.ndarray | None = None, gap_c: float = 2.0) -> float:
+    """Median spacing of the calibration temperatures (0 with fewer than two): the mean temperatures of
+    the records' temperature steps (soaks, or the bins of a ramp) when they are known, else clusters of
+    record temperatures separated by more than `gap_c`."""
+    t = np.asarray(temp_c, dtype=float)
+    if step is not None and step.size == t.size and step.size and step.min() >= 0:
+        k = int(step.max()) + 1
+        cnt = np.bincount(step, minlength=k)
+        levels = np.sort((np.bincount(step, weights=t, minlength=k) / np.maximum(cnt, 1))[cnt > 0])
+    else:
+        t = np.sort(t)
+        if t.size < 2:
+            return 0.0
+        levels = t[np.concatenate(([True], np.diff(t) > gap_c))]
     return float(np.median(np.diff(levels))) if levels.size > 1 else 0.0
 
 
@@ -138,7 +157,8 @@ def train_rbf_model(records: Records, variant: str = "paper", base: PolyModel | 
     # rows' scatter about each mean enters GCV as the constant it is (see rbf.train_rbf).
     w = records.n_rows
     within = np.where(np.isfinite(records.sem), records.sem ** 2, 0.0) * (w * (w - 1))[:, None]
-    temp_width = opt.min_temp_width_c if opt.min_temp_width_c is not None else step_spacing(temp)
+    spacing = step_spacing(temp, records.step)
+    temp_width = opt.min_temp_width_c if opt.min_temp_width_c is not None else spacing
     nets: list[RbfNetwork] = []
     for k, name in enumerate(CHANNELS):
         if progress:
@@ -152,7 +172,7 @@ def train_rbf_model(records: Records, variant: str = "paper", base: PolyModel | 
                               max_candidates=opt.max_candidates, patience=opt.patience, min_width=floor,
                               in_offset=offset, in_scale=scale, counts=True, within_ss=float(within[:, k].sum())))
     notes: list[str] = []
-    if step_spacing(temp) == 0:
+    if spacing == 0:
         notes.append("one temperature only: the networks cannot learn a temperature dependence")
     return RbfModel(variant=variant, networks=nets, t_min_c=float(temp.min()), t_max_c=float(temp.max()),
                     base=base if variant == "hybrid" else None, input_margin=opt.input_margin, notes=notes)

@@ -11,7 +11,11 @@ A campaign CSV has no setpoint or step column, so structure is inferred from the
   (table acceleration rows) are dropped.
 * *temperature steps* are clusters of record mean temperatures separated by gaps
   (single linkage on sorted temperatures), which is robust to the orientations being
-  recorded at slightly different IMU temperatures.
+  recorded at slightly different IMU temperatures. Continuous data (slow heating and
+  cooling ramps, no soaks) has no gaps: a cluster wider than `max_step_width_c` without a
+  gap of `continuous_gap_c` is cut into temperature bins of at most `ramp_bin_c`. The
+  records of a ramp are the pieces whose temperature spans at most `temp_span_c` and
+  changes by at most `max_drift_c_per_min` (a bounded |dT/dt|).
 
 Fits use record means (the paper averages each orientation's measurements), weighted by
 the record's duration, i.e. by the number of raw samples it stands for.
@@ -36,11 +40,15 @@ class RecordOptions:
     rate_tol_dps: float = 0.05  # rate change that starts a new segment (plus rate_tol_rel x |rate|)
     rate_tol_rel: float = 1e-3
     temp_span_c: float = 0.5  # a record's temperature may span at most this much
-    max_drift_c_per_min: float = 0.05  # steadier than this counts as a soak ...
-    drift_allowance_c: float = 0.05  # ... give or take this (sensor quantisation)
+    # Steadier than this is a record: a soak, or a slow ramp (a real log heats and cools continuously at
+    # a few C per hour); a chamber moving between soaks (a few C per minute) is not.
+    max_drift_c_per_min: float = 0.1
+    drift_allowance_c: float = 0.05  # ... give or take this (sensor quantisation and jitter)
     min_duration_s: float = 5.0  # shorter records (acceleration rows, fragments) are dropped
     step_gap_c: float = 2.0  # record temperatures further apart than this start a new step
     max_step_width_c: float = 3.0  # a wider cluster (chained by slow soak drift) is split at its widest gap
+    continuous_gap_c: float = 0.5  # ... while that gap is wider than this; else the cluster is a ramp, binned:
+    ramp_bin_c: float = 1.0  # temperature bins of continuous data are at most this wide
 
 
 @dataclass
@@ -279,26 +287,39 @@ def records_from_labels(a: dict[str, np.ndarray], row_record: np.ndarray, row_in
     )
 
 
-def _split_wide(ts: np.ndarray, new: np.ndarray, max_width: float) -> np.ndarray:
-    """Split clusters of sorted temperatures wider than max_width at their widest gaps."""
+def _split_wide(ts: np.ndarray, new: np.ndarray, max_width: float, continuous_gap: float = 0.5,
+                bin_c: float = 1.0) -> np.ndarray:
+    """Split clusters of sorted temperatures wider than max_width at their widest gaps; a wide cluster
+    without a gap wider than `continuous_gap` (a ramp) is cut into equal bins of at most `bin_c`."""
     new = new.copy()
+    binned: set[int] = set()
     while True:
         bounds = np.append(np.flatnonzero(new), ts.size)
-        wide = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a > 1 and ts[b - 1] - ts[a] > max_width]
+        wide = [(a, b) for a, b in zip(bounds[:-1], bounds[1:])
+                if b - a > 1 and ts[b - 1] - ts[a] > max_width and a not in binned]
         if not wide:
             return new
         for a, b in wide:
-            new[a + 1 + int(np.argmax(np.diff(ts[a:b])))] = True
+            gaps = np.diff(ts[a:b])
+            if gaps.max() > continuous_gap:
+                new[a + 1 + int(np.argmax(gaps))] = True
+                continue
+            n_bins = int(np.ceil((ts[b - 1] - ts[a]) / bin_c))
+            edges = np.linspace(ts[a], ts[b - 1], n_bins + 1)[1:-1]
+            cuts = a + np.searchsorted(ts[a:b], edges)
+            new[cuts[(cuts > a) & (cuts < b)]] = True
+            binned.update(int(c) for c in np.flatnonzero(new[a:b]) + a)
 
 
-def temperature_steps(records: Records, gap_c: float = 2.0, max_width_c: float = 3.0) -> TemperatureSteps:
-    """Cluster record temperatures into steps and set `records.step` (in place)."""
+def temperature_steps(records: Records, gap_c: float = 2.0, max_width_c: float = 3.0,
+                      continuous_gap_c: float = 0.5, ramp_bin_c: float = 1.0) -> TemperatureSteps:
+    """Cluster record temperatures into steps (soaks) or bins (ramps) and set `records.step` (in place)."""
     if len(records) == 0:
         records.step = np.zeros(0, dtype=np.int64)
         return TemperatureSteps(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
     order = np.argsort(records.temp_c, kind="stable")
     ts = records.temp_c[order]
-    new = _split_wide(ts, np.concatenate(([True], np.diff(ts) > gap_c)), max_width_c)
+    new = _split_wide(ts, np.concatenate(([True], np.diff(ts) > gap_c)), max_width_c, continuous_gap_c, ramp_bin_c)
     cluster_sorted = np.cumsum(new) - 1
     step = np.empty(len(records), dtype=np.int64)
     step[order] = cluster_sorted

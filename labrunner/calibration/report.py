@@ -94,7 +94,12 @@ def _exported_sentence(result: FitResult, h: Headline) -> str:
 def headline_lines(result: FitResult) -> list[str]:
     """The first lines of the summary: the exported model, its held-out gain, what was not fitted."""
     h = headline(result)
-    out = [_exported_sentence(result, h), ""]
+    out = [f"**Unfinished campaign:** {result.unfinished}.", ""] if result.unfinished else []
+    out += [_exported_sentence(result, h), ""]
+    if result.not_exported:
+        out += ["**Not exported:** " + "; ".join(result.not_exported) + ".", ""]
+    if result.combined:
+        out += ["**Fitted in combination:** " + " ".join(s + "." for s in result.combined), ""]
     if h.split is None:
         why = "no evaluation ran (--no-eval)" if not result.evaluation else "every evaluation split was skipped"
         out += [f"**Held-out gain:** not measured: {why}.", ""]
@@ -117,6 +122,15 @@ def headline_lines(result: FitResult) -> list[str]:
     else:
         out += ["**Not fitted:** nothing; every term and every evaluation split was fitted.", ""]
     return out
+
+
+def gains_table(result: FitResult) -> str:
+    """Per model: the largest departure of its gain from the fitted scale, where, and whether it may be exported."""
+    rows = []
+    for name, g in result.gains.items():
+        rows.append([name, f"{100 * g.max_departure:.3g}", f"{g.gain_min:.4f} .. {g.gain_max:.4f}",
+                     f"{g.worst_channel} at {g.worst_temp_c:.1f} C", "yes" if g.passed else "no"])
+    return _table(["model", "max departure (%)", "diagonal gain / fitted", "worst", "exportable"], rows)
 
 
 def gain_table(result: FitResult) -> str:
@@ -152,6 +166,12 @@ def summary_markdown(result: FitResult) -> str:
     out += ["## Temperature steps", "", _table(["T (C)", "record range (C)", "records", "orientations"], steps), ""]
     if result.not_fitted:
         out += ["## Not fitted", ""] + [f"- {s}" for s in result.not_fitted] + [""]
+    if result.gains:
+        out += ["## Gain of each model (output vs input)", "",
+                "The Jacobian of each model's output with respect to its input, by secant differences of "
+                "0.05 g and 5 deg/s at training record means, at their temperature and a margin beyond the "
+                "training temperatures, relative to the fitted scale (I + S(T))^-1; a model departing by more "
+                "than 0.5 % is not exported.", "", gains_table(result), ""]
     if result.notes:
         out += ["## Notes", ""] + [f"- {s}" for s in result.notes] + [""]
     for triad in ("accel", "gyro"):

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from .lsq import weighted_lstsq
+from .lsq import gauge_lstsq, weighted_lstsq
 from .records import Records, TemperatureSteps
 from .six_position import StepCalibration, _nan_to_none, is_rotating
 from .triads import AXES, TRIAD_SLICE, describe_missing
@@ -48,6 +48,9 @@ class TriadPoly:
     fitted: np.ndarray = field(default_factory=lambda: np.ones((3, 4), dtype=bool))  # (channel, block)
     not_fitted: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    # Terms fitted only in combination (bias with scale factor and misalignment when no axis is seen
+    # both up and down): what was combined and for which use the model is valid, in sentences.
+    combined: list[str] = field(default_factory=list)
     residual_rms: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))  # record-mean residuals
     cv_scores: dict[int, float] = field(default_factory=dict)  # order -> CV mean-square error, if chosen by CV
     # (3, 4(order+1), 4(order+1)): covariance of each channel's `coefficients()`, nan where unknown; for the
@@ -82,7 +85,7 @@ class TriadPoly:
             "bias": self.bias.tolist(), "bias_std": _nan_to_none(self.bias_std),
             "scale": self.scale.tolist(), "scale_std": _nan_to_none(self.scale_std),
             "fitted": self.fitted.tolist(), "not_fitted": self.not_fitted, "notes": self.notes,
-            "residual_rms": _nan_to_none(self.residual_rms),
+            "combined": self.combined, "residual_rms": _nan_to_none(self.residual_rms),
             "cv_scores": {str(k): v for k, v in self.cv_scores.items()},
         }
 
@@ -97,7 +100,8 @@ class TriadPoly:
             scale=arr(d["scale"]), bias_std=arr(d["bias_std"]), scale_std=arr(d["scale_std"]),
             t_min_c=float(lo), t_max_c=float(hi), method=d.get("method", "joint"),
             fitted=np.array(d.get("fitted", np.ones((3, 4))), dtype=bool), not_fitted=list(d.get("not_fitted", [])),
-            notes=list(d.get("notes", [])), residual_rms=arr(d.get("residual_rms", [np.nan] * 3)),
+            notes=list(d.get("notes", [])), combined=list(d.get("combined", [])),
+            residual_rms=arr(d.get("residual_rms", [np.nan] * 3)),
             cv_scores={int(k): float(v) for k, v in (d.get("cv_scores") or {}).items()},
         )
 
@@ -127,13 +131,23 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0) -
     temp = records.temp_c
     t_scale = _temp_scale(temp, t_ref_c)
     x = joint_design(temp, u, order, t_ref_c, t_scale)
-    fit = weighted_lstsq(x, records.mean[:, sl] - u, records.duration_s, known_var=records.sem[:, sl] ** 2)
+    target = records.mean[:, sl] - u
+    fit = weighted_lstsq(x, target, records.duration_s, known_var=records.sem[:, sl] ** 2)
+    ident = fit.identifiable.reshape(4, order + 1)
+    raw = np.where(np.isfinite(fit.coef), fit.coef, 0.0)
+    combined: list[str] = []
+    whole = ~ident.any(axis=1)  # blocks not one of whose temperature coefficients the data determine
+    if whole[0] and whole[1:].any() and not (ident.any(axis=1) & ~ident.all(axis=1)).any():
+        # Bias and S confounded (no axis seen both up and down): fit what the orientations do determine,
+        # each axis's output in each seen orientation as a function of T, common part in the bias.
+        raw = gauge_lstsq(x, target, records.duration_s, preferred=np.repeat(np.arange(4) == 0, order + 1),
+                          identifiable=fit.identifiable)
+        combined.append(_combined_sentence(triad, records, order, t_ref_c, whole))
     # Back from the scaled variable to (T - t_ref)^k.
     conv = np.tile(t_scale ** -np.arange(order + 1.0), 4)
-    coef = np.where(np.isfinite(fit.coef), fit.coef, 0.0).T * conv  # (3, p)
+    coef = raw.T * conv  # (3, p)
     std = fit.std.T * conv
     coef_cov = fit.cov * conv[None, :, None] * conv[None, None, :]
-    ident = fit.identifiable.reshape(4, order + 1)
     bias, scale = _unpack(coef, order)
     bias_std, scale_std = _unpack(std, order)
     fitted = np.tile(ident.any(axis=1), (3, 1))
@@ -146,13 +160,28 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0) -
     missing = [(c, b) for c in range(3) for b in range(4) if not ident[b].any()]
     not_fitted = [describe_missing(triad, missing, records.orientation, is_rotating(records))] if missing else []
     w = records.duration_s
-    rms = np.sqrt(np.sum(w[:, None] * fit.residual ** 2, axis=0) / np.sum(w)) if len(records) else np.full(3, np.nan)
+    resid = target - x @ raw if combined else fit.residual
+    rms = np.sqrt(np.sum(w[:, None] * resid ** 2, axis=0) / np.sum(w)) if len(records) else np.full(3, np.nan)
     return TriadPoly(
         triad=triad, order=order, t_ref_c=t_ref_c, bias=bias, scale=scale, bias_std=bias_std, scale_std=scale_std,
         t_min_c=float(temp.min()), t_max_c=float(temp.max()), method="joint", fitted=fitted, not_fitted=not_fitted,
-        notes=notes,
-        residual_rms=rms, coef_cov=coef_cov,
+        notes=notes, combined=combined, residual_rms=rms, coef_cov=coef_cov,
     )
+
+
+def _combined_sentence(triad: str, records: Records, order: int, t_ref_c: float, whole: np.ndarray) -> str:
+    from .triads import ORIENTATIONS
+
+    seen = ", ".join(ORIENTATIONS[i] for i in sorted(set(records.orientation.tolist())))
+    what = "bias" + ("" if not whole[1:].all() else " with scale factor and misalignment")
+    runs = len(set(records.run.tolist()))
+    return (f"{triad}: {what} fitted in combination, as each axis's output in each orientation seen ({seen}) as a "
+            f"polynomial of order {order} in (T - {t_ref_c:g} C): the bias is the part common to the orientations, "
+            "S(T) only their differences. Valid for compensating the IMU in (or near) those orientations, e.g. "
+            f"static or slow data in the mounting it was calibrated in; not a separation of bias from scale factor "
+            f"(no axis was seen both up and down)"
+            + (f"; each of the {runs} runs (power-ons) keeps its own turn-on bias in its orientation's level"
+               if runs > 1 else ""))
 
 
 def _block_label(b: int) -> str:
