@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from labrunner.calibration.fit import FitOptions, FitResult
     from labrunner.data_source import CampaignData
     from labrunner.discrepancy.diagnose import Diagnosis
+    from labrunner.store_address import StoreAddress
 
 log = logging.getLogger(__name__)
 
@@ -31,15 +32,16 @@ def read_campaign_csv(path: str | Path) -> pd.DataFrame:
     return read_campaign(path)
 
 
-def load_data(data: str | Path, *, campaign: int | None = None, include_monitor: bool = False) -> CampaignData:
+def load_data(data: str | Path | StoreAddress, *, campaign: int | None = None,
+              include_monitor: bool = False) -> CampaignData:
     """Validated campaign rows (campaign CSV columns) with provenance, from a CSV or a store."""
     from labrunner.data_source import load_campaign_data
 
     return load_campaign_data(data, campaign, include_monitor=include_monitor)
 
 
-def fit(data: str | Path | CampaignData, *, campaign: int | None = None, options: FitOptions | None = None,
-        save: bool = True, out: str | Path | None = None, force: bool = False,
+def fit(data: str | Path | StoreAddress | CampaignData, *, campaign: int | None = None,
+        options: FitOptions | None = None, save: bool = True, out: str | Path | None = None, force: bool = False,
         progress: Callable[[str], None] | None = None, **overrides: Any) -> FitResult:
     """Fit the calibration models to a campaign (a store's campaign, or a campaign CSV): what
     `labrunner fit` computes. `options` (a `labrunner.calibration.FitOptions`) and `overrides`
@@ -66,7 +68,8 @@ def fit(data: str | Path | CampaignData, *, campaign: int | None = None, options
     if save and prov.get("kind") == "store":
         from labrunner.store import Store
 
-        with Store.open_existing(prov["source"]) as store:
+        # The address read (a URL's password included); the provenance shows it masked.
+        with Store.open_existing(loaded.store or prov["source"]) as store:
             fit_id = store.save_fit(int(prov["campaign_id"]), result.to_dict(), result.provenance)
         log.info("fit %d stored in %s (campaign %s)", fit_id, prov["source"], prov["campaign_id"])
         if progress is not None:
@@ -77,14 +80,15 @@ def fit(data: str | Path | CampaignData, *, campaign: int | None = None, options
     return result
 
 
-def _source(data: str | Path | CampaignData) -> tuple[str | Path | None, bool]:
+def _source(data: str | Path | StoreAddress | CampaignData) -> tuple[str | Path | StoreAddress | None, bool]:
     """Where a fit's data come from, and whether that is a store (for `check_output`)."""
-    from labrunner.data_source import CampaignData, is_sqlite
+    from labrunner.data_source import CampaignData
+    from labrunner.store_address import is_store
 
     if isinstance(data, CampaignData):
-        return data.provenance.get("source"), data.provenance.get("kind") == "store"
+        return data.store or data.provenance.get("source"), data.provenance.get("kind") == "store"
     # The header is read only when handed a path, before this call opens anything of it.
-    return data, is_sqlite(data)
+    return data, is_store(data)
 
 
 def write_fit(result: FitResult, out: str | Path, summary: str | None = None, *, force: bool = False) -> list[str]:
@@ -98,7 +102,7 @@ def write_fit(result: FitResult, out: str | Path, summary: str | None = None, *,
     return write_outputs(result, Path(out), summary)
 
 
-def diagnose(data: str | Path | CampaignData | pd.DataFrame, *, campaign: int | None = None,
+def diagnose(data: str | Path | StoreAddress | CampaignData | pd.DataFrame, *, campaign: int | None = None,
              **options: Any) -> Diagnosis:
     """What the simulated IMU model gets wrong in measured data (a store's campaign with its monitor
     rows, a campaign CSV, or a frame): what `labrunner diagnose` computes. `options` are

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
 from labrunner.sim_config import has_fault_plan, sim_config_dict
+from labrunner.store_address import StoreAddress, store_address
 
 if TYPE_CHECKING:
     from labrunner.lab import Lab, LabConfig
@@ -60,7 +61,7 @@ class RunResult:
     """How a run or resume ended."""
 
     campaign_id: int
-    db: Path
+    db: StoreAddress  # str() shows a URL's password masked
     state: str  # done, paused, aborted, failed
     exit_code: int  # the CLI's: 0 done, 3 paused, 4 aborted, 1 failed
     steps_done: int
@@ -97,7 +98,7 @@ ProgressCallback = Callable[[Progress], None]
 class Session:
     """One campaign ready to run: its store, lab and runner. Close it (or use `with`)."""
 
-    def __init__(self, store: Store, campaign_id: int, procedure: Procedure, *, mode: str, db: Path,
+    def __init__(self, store: Store, campaign_id: int, procedure: Procedure, *, mode: str, db: StoreAddress,
                  lab: Lab | None = None, runner: CampaignRunner | None = None, status_before: str = "running",
                  next_step: int | None = 0, lease_note: str | None = None) -> None:
         self.store = store
@@ -227,7 +228,7 @@ def _rerecorded(store: Store, campaign_id: int, before: dict[int, int]) -> tuple
     return total, session
 
 
-def _result(runner: CampaignRunner, db: Path, final: str, wall_s: float,
+def _result(runner: CampaignRunner, db: StoreAddress, final: str, wall_s: float,
             attempts_before: dict[int, int] | None = None) -> RunResult:
     s = runner.stats
     rerecorded, rerecorded_session = _rerecorded(runner.store, runner.cid, attempts_before or {})
@@ -286,6 +287,30 @@ def _sim_lab(procedure: Procedure, sim_dict: dict[str, Any], start_t: float, ori
                          orientation=orientation)
 
 
+def _resumed_sim_lab(procedure: Procedure, store: Store, cid: int, sim_dict: dict[str, Any], clock_t0: float,
+                     start_t: float, next_orientation: str | None) -> Lab:
+    """A resumed dry run's simulated lab, started as the last session left it, as far as the store knows
+    (`runner.last_state`): the IMU still mounted as the sequencer last mounted it and powered since then
+    (same run), the chamber air at its last stored reading, heading for the last setpoint given (the
+    remount temperature after a safe stop). A campaign never mounted starts as a new one does, in the
+    next step's orientation. Whether the run then goes on in place is the sequencer's check, by gravity
+    and the chamber, as on a real lab."""
+    from labrunner.runner.last_state import left_state
+
+    left = left_state(store, cid, procedure.model.remount_c)
+    if left.mount is None:
+        return _sim_lab(procedure, sim_dict, start_t, next_orientation)
+    lab = _sim_lab(procedure, sim_dict, start_t, left.mount.orientation)
+    assert lab.sim is not None
+    air = left.chamber_c if left.chamber_c is not None else lab.sim.config.chamber.ambient_c
+    setpoint = left.setpoint_c if left.setpoint_c is not None else air
+    lab.sim.restore(orientation=left.mount.orientation, air_c=air, setpoint_c=setpoint,
+                    powered_since=clock_t0 + left.mount.t_s, run=left.mount.run)
+    log.info("resumed dry run: IMU %s since %.0f s (run %d), chamber %.2f C heading for %.2f C",
+             left.mount.orientation, left.mount.t_s, left.mount.run, air, setpoint)
+    return lab
+
+
 def _lab_config(lab: str | Path | LabConfig) -> LabConfig:
     from labrunner.lab import LabConfig, load_lab_config
 
@@ -307,13 +332,14 @@ def _runner(procedure: Procedure, lab: Lab, store: Store, cid: int, fit_out: Pat
     return runner
 
 
-def fit_dir(db: Path, given: str | Path | None, campaign_id: int) -> Path:
+def fit_dir(db: StoreAddress, given: str | Path | None, campaign_id: int) -> Path:
     """Where the end-of-run fit writes its models: given, or the campaign's own directory next to the
-    database (<db>_fit/campaign-<id>/), so a second campaign in the store keeps the first one's models."""
-    return Path(given) if given is not None else db.with_name(db.stem + "_fit") / f"campaign-{campaign_id}"
+    database (<db>_fit/campaign-<id>/; for a server database <dbname>_fit/ in the current directory),
+    so a second campaign in the store keeps the first one's models."""
+    return Path(given) if given is not None else db.beside("_fit") / f"campaign-{campaign_id}"
 
 
-def _check_fit_dir(procedure: Procedure, out: Path, db: Path, inputs: list[Any], force: bool) -> None:
+def _check_fit_dir(procedure: Procedure, out: Path, db: StoreAddress, inputs: list[Any], force: bool) -> None:
     """Refuse, before anything runs, a fit directory that holds an input or (without `force`) files."""
     if procedure.model.fit.run:
         check_output(out, store=db, inputs=[i for i in inputs if isinstance(i, (str, Path))], force=force,
@@ -323,7 +349,7 @@ def _check_fit_dir(procedure: Procedure, out: Path, db: Path, inputs: list[Any],
 # --- run, resume ---------------------------------------------------------------------------------------------
 
 
-def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | Path | LabConfig = "sim",
+def start_run(procedure: str | Path | Procedure, *, db: str | Path | StoreAddress, lab: str | Path | LabConfig = "sim",
               seed: int | None = None, faults: int = 0, sim_config: str | Path | dict[str, Any] | None = None,
               fit_out: str | Path | None = None, auto_resume: bool = True, force: bool = False) -> Session:
     """A new campaign of `procedure` in `db`, on the simulated lab (`lab="sim"`) or a real one. The
@@ -333,7 +359,7 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
     from labrunner.runner.lease import new_token
     from labrunner.store import Store
 
-    db = Path(db)
+    db = store_address(db)
     if isinstance(procedure, Procedure):
         proc, proc_path = procedure, None
     else:
@@ -361,15 +387,15 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
         the_lab.close()
         raise
     try:
-        # The id new_campaign will give (SQLite's largest + 1): the default fit directory is checked
-        # before the campaign exists, so a refusal adds nothing to the store.
-        planned_id = max(store.campaign_ids(), default=0) + 1
+        # The id new_campaign will give (reserved: a PostgreSQL sequence is not the largest + 1): the
+        # default fit directory is checked before the campaign exists, so a refusal adds nothing to the store.
+        planned_id = store.reserve_campaign_id()
         _check_fit_dir(proc, fit_dir(db, fit_out, planned_id), db, [proc_path, sim_config, None if sim else lab],
                        force)
         cid = store.new_campaign(name=proc.name, procedure_text=proc.text, procedure_path=proc_path,
                                  procedure_sha256=proc.sha256, lab_config=lab_dict, mode="sim" if sim else "lab",
                                  sim_config=sim_dict, clock_t0=the_lab.clock.now(), plan=proc.steps(),
-                                 lease_token=new_token())
+                                 lease_token=new_token(), campaign_id=planned_id)
         auto = AUTO_RESUME_S if (sim and has_fault_plan(sim_dict) and auto_resume) else None
         runner = _runner(proc, the_lab, store, cid, fit_dir(db, fit_out, cid), sim_dict, auto)
     except BaseException:
@@ -380,8 +406,9 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path, lab: str | P
     return Session(store, cid, proc, mode="sim" if sim else "lab", db=db, lab=the_lab, runner=runner)
 
 
-def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path | LabConfig | None = None,
-                 fit_out: str | Path | None = None, force: bool = False, take_over: bool = False) -> Session:
+def start_resume(db: str | Path | StoreAddress, *, campaign: int | None = None,
+                 lab: str | Path | LabConfig | None = None, fit_out: str | Path | None = None, force: bool = False,
+                 take_over: bool = False) -> Session:
     """Continue a paused, aborted, failed or killed campaign from its first missing step. A complete
     campaign gives a session with nothing to run (`already_done`).
 
@@ -393,7 +420,7 @@ def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path
     from labrunner.runner.lease import acquire
     from labrunner.store import Store
 
-    db = Path(db)
+    db = store_address(db)
     store = Store.open_existing(db)
     the_lab: Lab | None = None
     held: int | None = None  # the campaign whose lease this call took
@@ -424,7 +451,8 @@ def start_resume(db: str | Path, *, campaign: int | None = None, lab: str | Path
             # kill the heartbeat's clock_last and the last event may both lag behind the monitor
             # stretches stored while soaking (a resumed session must not overlap them).
             last = max(info.clock_last, info.clock_t0 + store.last_moment(cid))
-            the_lab = _sim_lab(procedure, info.sim_config or {}, last + 60.0, orientation)
+            the_lab = _resumed_sim_lab(procedure, store, cid, info.sim_config or {}, info.clock_t0, last + 60.0,
+                                       orientation)
         else:
             config = _lab_config(lab) if lab is not None else lab_config_from_dict(info.lab_config,
                                                                                   "stored lab configuration")

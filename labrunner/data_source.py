@@ -55,4 +55,16 @@ def _from_store(address: StoreAddress, campaign: int | None, include_monitor: bo
     with Store.open_existing(address) as store:
         data = store.campaign_data(campaign, include_monitor=include_monitor)
         data.provenance.update(step_progress(store, int(data.provenance["campaign_id"])))
+        data.frame = mark_power_ons(data.frame, store.events_frame(int(data.provenance["campaign_id"])))
         return data
+
+
+def mark_power_ons(frame: pd.DataFrame, events: pd.DataFrame) -> pd.DataFrame:
+    """The store's power-on events as the campaign CSV's optional `power_on` column: 1 on the first
+    row of each run the sequencer powered the IMU on for (its "powered on (run N)" event)."""
+    import re
+
+    runs = {int(m.group(1)) for text in events.get("message", pd.Series(dtype=str)).astype(str)
+            if (m := re.search(r"powered on \(run (\d+)\)", text))}
+    first = ~frame["run"].duplicated()
+    return frame.assign(power_on=(first & frame["run"].isin(runs)).astype("int64"))

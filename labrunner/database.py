@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from labrunner.campaign_analysis import diagnose, fit
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
+from labrunner.store_address import StoreAddress, store_address
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -62,7 +63,7 @@ class CampaignStatus:
 
     campaign_id: int
     name: str
-    db: Path
+    db: StoreAddress  # str() shows a URL's password masked
     status: str  # running, paused, aborted, failed, done
     process_alive: bool  # a "running" campaign whose process is gone must be resumed
     mode: str  # "sim" or "lab"
@@ -119,26 +120,29 @@ class CampaignSummary:
         return f"pid {self.pid} on {self.host or '?'}"
 
 
-def open_database(db: str | Path) -> Database:
-    """Open a labrunner store for reading (a context manager; also usable while a campaign runs)."""
+def open_database(db: str | Path | StoreAddress) -> Database:
+    """Open a labrunner store for reading (a context manager; also usable while a campaign runs): a
+    SQLite file's path, or a URL (`postgresql+psycopg://user@host:port/dbname`, `sqlite:///path`)."""
     from labrunner.store import Store
 
-    path = Path(db)
+    address = store_address(db)
+    path = address.file
     # SQLite would make an empty file a database (WAL mode writes a header). Only stat, not read: a
     # descriptor closed here would drop the SQLite locks of a store this process has open.
-    if path.is_file() and path.stat().st_size == 0:
+    if path is not None and path.is_file() and path.stat().st_size == 0:
         raise UserError(f"{path}: not a labrunner database (an empty file)")
-    return Database(Store.open_existing(path))
+    return Database(Store.open_existing(address))
 
 
 class Database:
-    """A labrunner SQLite store: one or more campaigns."""
+    """A labrunner store (a SQLite file or a PostgreSQL database): one or more campaigns."""
 
     def __init__(self, store: Store) -> None:
         self.store = store
 
     @property
-    def path(self) -> Path:
+    def path(self) -> StoreAddress:
+        """Where the store is (a file's path, or a URL shown with its password masked)."""
         return self.store.path
 
     def campaigns(self) -> list[Campaign]:

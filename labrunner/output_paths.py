@@ -10,8 +10,9 @@ Paths are compared resolved (symlinks and `..` followed) and, when both exist, w
 (hard links, case-insensitive file systems). Nothing here opens a file: closing any descriptor of a
 database drops every POSIX lock the process holds on it, SQLite's included, and a process running a
 campaign checks its fit directory with the store open (another process could then delete the WAL it
-writes). So the caller says which path is the store. This module imports nothing else of labrunner
-but its error class, so every room may use it.
+writes). So the caller says which path is the store. A store on a database server (a URL) is no file:
+only the other inputs are protected then. This module imports nothing of labrunner but its error class
+and `store_address` (both in the base room), so every room may use it.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from labrunner.errors import UserError
+from labrunner.store_address import StoreAddress, is_url, store_address
 
 STDOUT = "-"
 # Files SQLite keeps beside a database (WAL mode, rollback journal): writing one corrupts the store.
@@ -40,12 +42,25 @@ class _Protected:
     what: str  # "the store w.db", "a companion file of the store w.db", "the input quick.yaml"
 
 
-def _protected(store: str | Path | None, inputs: Iterable[str | Path | None]) -> list[_Protected]:
+def _file_of(given: str | Path | StoreAddress) -> Path | None:
+    """The file an input or store names: a path, a SQLite URL's file; None for a server database."""
+    if isinstance(given, StoreAddress) or is_url(given):
+        try:
+            return store_address(given).file
+        except UserError:  # a URL no store can have: nothing on disk to protect
+            return None
+    return Path(given)
+
+
+def _protected(store: str | Path | StoreAddress | None,
+               inputs: Iterable[str | Path | StoreAddress | None]) -> list[_Protected]:
     out: list[_Protected] = []
     for given, role in [(store, "the store"), *((i, "the input") for i in inputs)]:
         if given is None or str(given) == STDOUT:
             continue
-        path = Path(given)
+        path = _file_of(given)
+        if path is None:
+            continue
         what = f"{role} {given}"
         # Both the path as given and as resolved: SQLite names its companions after the path it was
         # opened with, and newer versions after the symlink's target. Any input may be a store (fit
@@ -65,7 +80,8 @@ def _same(a: Path, b: Path) -> bool:
         return False
 
 
-def check_output(path: str | Path, *, store: str | Path | None = None, inputs: Iterable[str | Path | None] = (),
+def check_output(path: str | Path, *, store: str | Path | StoreAddress | None = None,
+                 inputs: Iterable[str | Path | StoreAddress | None] = (),
                  force: bool = False, directory: bool = False, option: str = "output",
                  allow_stdout: bool = False) -> Path | None:
     """Check that writing `path` overwrites nothing it should not; returns it resolved (None: stdout).

@@ -1,4 +1,4 @@
-"""The campaign store: SQLite through SQLAlchemy Core.
+"""The campaign store: SQLite or PostgreSQL through SQLAlchemy Core (`store_address`: a path or a URL).
 
 Tables: campaigns (procedure text and hash, lab configuration, software version,
 status), steps (the planned record steps and their status), sample_blocks (one row
@@ -10,17 +10,18 @@ recording; also 'monitor' blocks of 1 s means while ramping and soaking), events
 
 A record step is written with its step status and its event in one transaction,
 so after any crash a step is either complete or absent; a partial unique index
-makes a second copy of a step impossible. WAL and synchronous=NORMAL on every
-connection. Readers return pandas frames.
+makes a second copy of a step impossible (partial on both backends). On SQLite, WAL
+and synchronous=NORMAL on every connection. Readers return pandas frames.
 
 A database that cannot be read or written (disk full, lost connection, read-only
-file) raises `StoreError`, one line naming the database and what SQLite said, so
+file, a server gone) raises `StoreError`, one line naming the database and what it said, so
 the sequencer can tell a store failure from an instrument's and bring the lab to
 its safe state before it touches the store again.
 """
 
 from __future__ import annotations
 
+import getpass
 import json
 import logging
 import os
@@ -48,6 +49,7 @@ from sqlalchemy import (
     event,
     func,
     insert,
+    inspect,
     select,
     text,
     update,
@@ -57,6 +59,7 @@ from sqlalchemy.exc import DatabaseError, IntegrityError, OperationalError
 
 from labrunner.campaign_csv import COLUMNS
 from labrunner.errors import UserError
+from labrunner.store_address import StoreAddress, store_address
 from labrunner.version import __version__
 
 log = logging.getLogger(__name__)
@@ -72,15 +75,30 @@ class StoreError(UserError):
 
     exit_code = 1  # a failed run, not bad input
 
-    def __init__(self, path: Path, doing: str, cause: BaseException) -> None:
-        orig = getattr(cause, "orig", None)  # the DBAPI error, without SQLAlchemy's SQL and parameters
+    def __init__(self, path: StoreAddress, doing: str, cause: BaseException) -> None:
         self.path = path
-        self.cause = str(orig if orig is not None else cause).strip() or type(cause).__name__
+        self.cause = _cause(cause)
         super().__init__(f"cannot {doing} the database {path}: {self.cause}")
 
 
+def _cause(exc: BaseException) -> str:
+    """The DBAPI error in one line, without SQLAlchemy's SQL and parameters (libpq's messages span
+    lines: "connection failed: ...\\n\\tIs the server running ...?")."""
+    orig = getattr(exc, "orig", None)
+    return " ".join(str(orig if orig is not None else exc).split()) or type(exc).__name__
+
+
+class StoreUnavailable(StoreError):
+    """A database server that cannot be reached or refuses the login (one line, no password)."""
+
+    def __init__(self, path: StoreAddress, message: str, cause: BaseException) -> None:
+        self.path = path
+        self.cause = _cause(cause)
+        UserError.__init__(self, message)
+
+
 # What SQLite says of a file that is not a labrunner store (another file, an empty or another database).
-_NOT_A_STORE = ("file is not a database", "no such table")
+_NOT_A_STORE = ("file is not a database", "no such table", "does not exist")  # PG: relation "..." does not exist
 
 # 2: the campaign lease (campaigns.lease_token, lease_wall). A version-1 store is migrated when opened.
 SCHEMA_VERSION = 2
@@ -155,7 +173,8 @@ sample_blocks = Table(
     Column("temp_c", LargeBinary, nullable=False),  # (n,)
     Column("chamber", LargeBinary, nullable=False),  # float64 pairs (t_s, deg C) read while recording
     Column("table", LargeBinary, nullable=False),  # float64 pairs (t_s, deg/s)
-    Index("one_record_per_step", "campaign_id", "step_idx", unique=True, sqlite_where=text("kind = 'record'")),
+    Index("one_record_per_step", "campaign_id", "step_idx", unique=True, sqlite_where=text("kind = 'record'"),
+          postgresql_where=text("kind = 'record'")),
     Index("blocks_by_time", "campaign_id", "t0_s"),
 )
 
@@ -242,7 +261,7 @@ def _f64(a: np.ndarray) -> bytes:
     return np.ascontiguousarray(a, dtype="<f8").tobytes()
 
 
-def _block_from_row(row: Any, path: Path) -> SampleBlock:
+def _block_from_row(row: Any, path: StoreAddress) -> SampleBlock:
     """A stored sample block decoded, or `StoreDamage` naming its campaign, step and the blob that does
     not hold what its row says (a short or garbled blob would otherwise be a reshape error)."""
     n, enc = row["n"], row["encoding"]
@@ -281,7 +300,7 @@ def _block_from_row(row: Any, path: Path) -> SampleBlock:
     )
 
 
-def _json(value: str | None, path: Path, campaign_id: int, table: str, column: str) -> Any:
+def _json(value: str | None, path: StoreAddress, campaign_id: int, table: str, column: str) -> Any:
     """A stored JSON column decoded, or `StoreDamage` naming the campaign, table and column."""
     if value is None:
         return None
@@ -329,7 +348,7 @@ class LeaseHolder:
 class LeaseLost(StoreError):
     """This process's lease on a campaign was taken over: it must not write to the campaign again."""
 
-    def __init__(self, path: Path, campaign_id: int) -> None:
+    def __init__(self, path: StoreAddress, campaign_id: int) -> None:
         self.path = path
         self.cause = f"the lease on campaign {campaign_id} was taken over by another process"
         UserError.__init__(self, f"{path}: {self.cause}; this process stops writing to it")
@@ -356,10 +375,51 @@ def _on_connect(dbapi_conn: Any, _record: Any) -> None:
     cur.close()
 
 
+def _server_refusal(address: StoreAddress, exc: BaseException) -> UserError | None:
+    """What a PostgreSQL server's refusal to connect means, in one line naming host:port and the user
+    (never the password); None when it is not a refusal to connect (or the store is a file)."""
+    if not address.is_server:
+        return None
+    msg = _cause(exc)
+    low = msg.lower()
+    url, at = address.url, address.server
+    user = url.username or os.environ.get("PGUSER") or getpass.getuser()
+    if "connection refused" in low or ("no such file or directory" in low and "socket" in low):
+        return StoreUnavailable(address, f"{address}: cannot reach the PostgreSQL server at {at}: connection "
+                                         "refused (is the server running and listening there?)", exc)
+    if any(m in low for m in ("resolve host", "translate host name", "name or service not known",
+                              "nodename nor servname", "temporary failure in name resolution")):
+        return StoreUnavailable(address, f"{address}: cannot reach the PostgreSQL server at {at}: unknown host "
+                                         f"{url.host!r}", exc)
+    if "timeout expired" in low or "timed out" in low:
+        return StoreUnavailable(address, f"{address}: cannot reach the PostgreSQL server at {at}: no answer "
+                                         f"within {CONNECT_TIMEOUT_S} s", exc)
+    login = ("authentication failed", "no password supplied", "pg_hba.conf", "role \"")
+    if any(m in low for m in login) and not ('database "' in low and "does not exist" in low):
+        if "no password supplied" in low:
+            reason = "the server asks for a password and none was given (in the URL, PGPASSWORD or ~/.pgpass)"
+        elif "password authentication failed" in low:
+            reason = "password authentication failed"
+        else:
+            reason = msg.split("FATAL:", 1)[-1].strip()
+        return StoreUnavailable(address, f"{address}: the PostgreSQL server at {at} refused the login of "
+                                         f"{user}@{url.host or 'localhost'}: {reason}", exc)
+    if 'database "' in low and "does not exist" in low:
+        return UserError(f"{address}: the PostgreSQL server at {at} has no database {url.database!r} (create it "
+                         f"first, e.g. createdb -h {url.host or 'localhost'} -p {url.port or 5432} {url.database})")
+    return None
+
+
+# A server that does not answer is named after this long, not waited for (libpq's connect_timeout).
+CONNECT_TIMEOUT_S = 10
+# Two first runs on one empty PostgreSQL database: one creates the schema, the other waits and finds it.
+_SCHEMA_LOCK = 0x1AB_5707E
+
+
 class Store:
-    def __init__(self, engine: Engine, path: Path) -> None:
+    def __init__(self, engine: Engine, path: StoreAddress) -> None:
         self.engine = engine
-        self.path = path
+        self.path = path  # where the store is; str() shows a URL's password masked
         # Leases this Store holds: campaign id -> token. Writes of a held campaign's samples and its
         # heartbeat check the token in the database, so a process whose lease was taken over stops.
         self.leases: dict[int, str] = {}
@@ -368,21 +428,31 @@ class Store:
     # --- opening ---------------------------------------------------------------------------
 
     @staticmethod
-    def _engine(path: Path) -> Engine:
-        engine = create_engine(f"sqlite:///{path}", future=True)
-        event.listen(engine, "connect", _on_connect)
-        return engine
+    def _engine(address: StoreAddress) -> Engine:
+        if address.file is not None:
+            engine = create_engine(f"sqlite:///{address.file}", future=True)
+            event.listen(engine, "connect", _on_connect)  # the pragmas are SQLite's
+            return engine
+        # pre_ping: a pooled connection the server dropped (a restart, pg_terminate_backend) is replaced
+        # instead of failing the next write. The password stays inside the URL object.
+        return create_engine(address.url, future=True, pool_pre_ping=True,
+                             connect_args={"connect_timeout": CONNECT_TIMEOUT_S, "application_name": "labrunner"})
 
     @classmethod
-    def create(cls, path: str | Path) -> Store:
-        """Open for writing, creating the schema if the file is new (a file may hold many campaigns)."""
-        p = Path(path)
+    def create(cls, path: str | Path | StoreAddress) -> Store:
+        """Open for writing, creating the schema if the file (or the server database) has none yet (a
+        store may hold many campaigns)."""
+        a = store_address(path)
+        if a.is_server:
+            return cls._create_on_server(a)
+        p = a.file
+        assert p is not None
         if p.exists() and p.stat().st_size > 0:
-            store = cls.open_existing(p)
+            store = cls.open_existing(a)
             return store
         try:
             p.parent.mkdir(parents=True, exist_ok=True)
-            engine = cls._engine(p)
+            engine = cls._engine(a)
             metadata.create_all(engine)
             with engine.begin() as conn:
                 conn.execute(insert(meta), [{"key": "schema_version", "value": str(SCHEMA_VERSION)},
@@ -390,56 +460,87 @@ class Store:
         except IntegrityError:
             raise
         except _STORE_FAILURES as exc:
-            raise StoreError(p, "create", exc) from exc
-        log.info("store %s created (schema %d)", p, SCHEMA_VERSION)
-        return cls(engine, p)
+            raise StoreError(a, "create", exc) from exc
+        log.info("store %s created (schema %d)", a, SCHEMA_VERSION)
+        return cls(engine, a)
 
     @classmethod
-    def open_existing(cls, path: str | Path, *, check: bool = True) -> Store:
+    def _create_on_server(cls, a: StoreAddress) -> Store:
+        """The schema created in a server database that has none (DDL is transactional there: all or
+        nothing), then opened as an existing store."""
+        engine = cls._engine(a)
+        try:
+            with engine.begin() as conn:
+                conn.execute(select(func.pg_advisory_xact_lock(_SCHEMA_LOCK)))
+                names = set(inspect(conn).get_table_names())
+                if meta.name not in names:
+                    clash = sorted(names & set(metadata.tables))
+                    if clash:
+                        raise UserError(f"{a}: not a labrunner database (it holds table {', '.join(clash)} but no "
+                                        f"{meta.name}); give an empty database or a labrunner store")
+                    metadata.create_all(conn)
+                    conn.execute(insert(meta), [{"key": "schema_version", "value": str(SCHEMA_VERSION)},
+                                                {"key": "created_by", "value": f"labrunner {__version__}"}])
+                    log.info("store %s created (schema %d)", a, SCHEMA_VERSION)
+        except _STORE_FAILURES as exc:
+            refusal = _server_refusal(a, exc)
+            raise (refusal or StoreError(a, "create", exc)) from None
+        finally:
+            engine.dispose()
+        return cls.open_existing(a)
+
+    @classmethod
+    def open_existing(cls, path: str | Path | StoreAddress, *, check: bool = True) -> Store:
         """Open a store (migrating a schema-1 one). `check`: run SQLite's quick_check first and raise
         `StoreDamage` when it finds damage (`labrunner check --db` opens without it, to report all)."""
-        p = Path(path)
-        if not p.exists():
-            raise UserError(f"{p}: database not found")
-        if p.is_dir():
-            raise UserError(f"{p}: not a labrunner database")  # a directory
-        engine = cls._engine(p)
+        a = store_address(path)
+        if a.file is not None and not a.file.exists():
+            raise UserError(f"{a}: database not found")
+        if a.file is not None and a.file.is_dir():
+            raise UserError(f"{a}: not a labrunner database")  # a directory
+        engine = cls._engine(a)
         try:
             with engine.connect() as conn:
                 version = conn.execute(select(meta.c.value).where(meta.c.key == "schema_version")).scalar()
         except _STORE_FAILURES as exc:
             engine.dispose()
+            refusal = _server_refusal(a, exc)
+            if refusal is not None:
+                raise refusal from None
             cause = str(getattr(exc, "orig", None) or exc)
             if any(m in cause for m in _NOT_A_STORE):
-                raise UserError(f"{p}: not a labrunner database") from None
+                if a.is_server:
+                    raise UserError(f"{a}: not a labrunner database (no table {meta.name}: the database holds no "
+                                    "labrunner schema; labrunner run --db creates one in an empty database)") from None
+                raise UserError(f"{a}: not a labrunner database") from None
             # A store that cannot be opened (a full disk for its -shm, a read-only directory, a damaged
             # file) is named as such, not mistaken for a foreign file.
-            raise StoreError(p, "open", exc) from exc
+            raise StoreError(a, "open", exc) from exc
         try:
             number = int(version) if version is not None else None
         except ValueError:
             number = None
         if number == 1:
-            cls._migrate_from_1(engine, p)
+            cls._migrate_from_1(engine, a)
         elif number != SCHEMA_VERSION:
             engine.dispose()
             if number is not None and number > SCHEMA_VERSION:
-                raise UserError(f"{p}: database schema version {number} is newer than this labrunner's "
+                raise UserError(f"{a}: database schema version {number} is newer than this labrunner's "
                                 f"({SCHEMA_VERSION}): use the labrunner that wrote it, or a newer one")
-            raise StoreDamage(f"{p}: table labrunner_meta: schema version {version!r} is not one labrunner "
+            raise StoreDamage(f"{a}: table labrunner_meta: schema version {version!r} is not one labrunner "
                               f"wrote (this labrunner reads {SCHEMA_VERSION}): the store is damaged")
-        store = cls(engine, p)
+        store = cls(engine, a)
         try:
             if check:
                 store.quick_check()
         except BaseException:
             engine.dispose()
             raise
-        log.debug("store %s opened", p)
+        log.debug("store %s opened", a)
         return store
 
     @staticmethod
-    def _migrate_from_1(engine: Engine, p: Path) -> None:
+    def _migrate_from_1(engine: Engine, p: StoreAddress) -> None:
         """Schema 1 -> 2: add the lease columns. A campaign a version-1 process may still be running keeps
         that process as its holder (heartbeat: its last update), so the lease rules apply to it too."""
         try:
@@ -580,12 +681,29 @@ class Store:
 
     def new_campaign(self, *, name: str, procedure_text: str, procedure_path: str | None, procedure_sha256: str,
                      lab_config: dict[str, Any], mode: str, sim_config: dict[str, Any] | None, clock_t0: float,
-                     plan: Sequence[Any], lease_token: str | None = None) -> int:
-        """A new campaign, its lease held by `lease_token` (this process) from the start if given."""
+                     plan: Sequence[Any], lease_token: str | None = None, campaign_id: int | None = None) -> int:
+        """A new campaign, its lease held by `lease_token` (this process) from the start if given; with
+        the id `reserve_campaign_id` gave, if given."""
         now = time.time()
+        try:
+            return self._new_campaign(now, name=name, procedure_text=procedure_text, procedure_path=procedure_path,
+                                      procedure_sha256=procedure_sha256, lab_config=lab_config, mode=mode,
+                                      sim_config=sim_config, clock_t0=clock_t0, plan=plan, lease_token=lease_token,
+                                      campaign_id=campaign_id)
+        except IntegrityError:
+            if campaign_id is None:
+                raise
+            # SQLite's reserved id (largest + 1) taken by a run that started at the same moment.
+            raise UserError(f"{self.path}: another process created campaign {campaign_id} at the same moment; "
+                            "run again") from None
+
+    def _new_campaign(self, now: float, *, name: str, procedure_text: str, procedure_path: str | None,
+                      procedure_sha256: str, lab_config: dict[str, Any], mode: str, sim_config: dict[str, Any] | None,
+                      clock_t0: float, plan: Sequence[Any], lease_token: str | None, campaign_id: int | None) -> int:
         with self.transaction() as conn:
             cid = _inserted_id(conn.execute(insert(campaigns).values(
-                name=name, procedure_path=procedure_path, procedure_text=procedure_text,
+                **({} if campaign_id is None else {"id": campaign_id}), name=name, procedure_path=procedure_path,
+                procedure_text=procedure_text,
                 procedure_sha256=procedure_sha256, lab_config=json.dumps(lab_config), mode=mode,
                 sim_config=json.dumps(sim_config) if sim_config is not None else None,
                 software_version=__version__, status="running", created_wall=now, updated_wall=now,
@@ -599,6 +717,16 @@ class Store:
             self.leases[int(cid)] = lease_token
         log.info("campaign %d %r created in %s: %d steps (%s)", cid, name, self.path, len(plan), mode)
         return int(cid)
+
+    def reserve_campaign_id(self) -> int:
+        """The id the next `new_campaign(campaign_id=...)` will use, known before the campaign exists (its
+        fit directory is named after it). SQLite gives the largest id + 1; a PostgreSQL sequence does
+        not (a rolled-back insert uses a number up), so there the number is drawn from the sequence:
+        taken for good, by this process alone."""
+        with self.reading() as conn:
+            if self.engine.dialect.name == "postgresql":
+                return int(conn.execute(text("SELECT nextval(pg_get_serial_sequence('campaigns', 'id'))")).scalar_one())
+            return int(conn.execute(select(func.max(campaigns.c.id))).scalar() or 0) + 1
 
     def campaign_ids(self) -> list[int]:
         with self.reading() as conn:
@@ -981,7 +1109,7 @@ class Store:
         if frame.empty:
             raise UserError(f"{self.path}: campaign {cid} has no recorded samples yet")
         frame = read_campaign(frame, name=f"{self.path} campaign {cid}")
-        return CampaignData(frame=frame, provenance={
+        return CampaignData(frame=frame, store=self.path, provenance={
             "source": str(self.path.resolve()), "kind": "store", "campaign_id": cid, "campaign": info.name,
             "procedure_sha256": info.procedure_sha256, "status": info.status, "rows": len(frame),
             "t_range_s": [float(frame.t_s.min()), float(frame.t_s.max())],

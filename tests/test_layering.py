@@ -53,6 +53,7 @@ ROOMS: dict[str, str] = {
     "labrunner.fault_kinds": "base",
     "labrunner.version": "base",
     "labrunner.output_paths": "base",
+    "labrunner.store_address": "base",
     "labrunner": "composition",  # the package's __init__: the public Python API
 }
 

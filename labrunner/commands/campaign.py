@@ -13,6 +13,7 @@ from pathlib import Path
 from labrunner import api
 from labrunner.commands.progress import ProgressBar, clock_text
 from labrunner.commands.types import count, interval, seconds
+from labrunner.store_address import StoreAddress, store_arg
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,7 +32,7 @@ examples:
   labrunner run procedures/paper_campaign.yaml --lab lab.yaml --db c1.db   # on the real instruments""")
     run.add_argument("procedure", type=Path, metavar="PROCEDURE",
                      help="procedure YAML, or the name of a shipped one (quick, paper_campaign)")
-    run.add_argument("--db", type=Path, required=True, metavar="DB",
+    run.add_argument("--db", type=store_arg, required=True, metavar="DB",
                      help="SQLite database for the campaign (created if new; may hold other campaigns)")
     where = run.add_mutually_exclusive_group(required=True)
     where.add_argument("--sim", action="store_true", help="dry run against the simulated lab (virtual clock)")
@@ -60,7 +61,7 @@ examples:
 examples:
   labrunner resume quick.db
   labrunner resume c1.db --campaign 2 --lab lab.yaml        # the second campaign, on another lab set-up""")
-    res.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
+    res.add_argument("db", type=store_arg, metavar="DB", help="the campaign's database")
     res.add_argument("--campaign", type=int, default=None, metavar="N",
                      help="campaign id (default: the latest in the database)")
     res.add_argument("--lab", type=Path, metavar="LAB.yaml", help="lab configuration (default: the one stored)")
@@ -83,7 +84,7 @@ examples:
 examples:
   labrunner status quick.db
   labrunner status quick.db --watch 5 --events 15           # refresh every 5 s until the campaign ends""")
-    st.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
+    st.add_argument("db", type=store_arg, metavar="DB", help="the campaign's database")
     st.add_argument("--campaign", type=int, default=None, metavar="N",
                     help="campaign id (default: the latest in the database)")
     st.add_argument("--events", type=count, default=8, metavar="N", help="how many recent events to show")
@@ -103,7 +104,7 @@ examples:
 examples:
   labrunner abort quick.db
   labrunner abort c1.db --campaign 2 --wait 300""")
-    ab.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
+    ab.add_argument("db", type=store_arg, metavar="DB", help="the campaign's database")
     ab.add_argument("--campaign", type=int, default=None, metavar="N",
                     help="campaign id (default: the latest in the database)")
     ab.add_argument("--wait", type=seconds, default=60.0, metavar="S",
@@ -119,7 +120,7 @@ examples:
 examples:
   labrunner export quick.db --csv quick.csv
   labrunner export quick.db --csv - --with-monitor | head   # to stdout, with the ramp and soak rows""")
-    ex.add_argument("db", type=Path, metavar="DB", help="the campaign's database")
+    ex.add_argument("db", type=store_arg, metavar="DB", help="the campaign's database")
     ex.add_argument("--csv", type=Path, required=True, metavar="FILE", help="output CSV file ('-' for stdout)")
     ex.add_argument("--campaign", type=int, default=None, metavar="N",
                     help="campaign id (default: the latest in the database)")
@@ -137,7 +138,7 @@ def rerecorded_text(campaign_wide: int, session: int) -> str:
     return f"re-recorded steps: {campaign_wide}" + (f" ({session} this session)" if session != campaign_wide else "")
 
 
-def _execute(session: api.Session, quiet: bool, db: Path) -> int:
+def _execute(session: api.Session, quiet: bool, db: StoreAddress) -> int:
     bar = ProgressBar(session.steps_total, quiet, initial=session.steps_done)  # a resumed one: where it was
     try:
         r = session.execute(None if quiet else bar, handle_signals=True)

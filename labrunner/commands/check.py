@@ -7,6 +7,7 @@ from pathlib import Path
 
 from labrunner import api
 from labrunner.errors import UserError
+from labrunner.store_address import StoreAddress, store_arg
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -28,9 +29,10 @@ examples:
     p.add_argument("--sim-config", type=Path, metavar="SIM.yaml",
                    help="sim configuration (seed, plants, IMU model, faults)")
     p.add_argument("--csv", type=Path, metavar="FILE", help="campaign CSV, as `labrunner export` writes it")
-    p.add_argument("--db", type=Path, metavar="DB",
-                   help="labrunner store: SQLite's full integrity check, then every stored JSON column and sample "
-                        "blob decoded; each problem named by campaign, table and step (exit 2 when damaged)")
+    p.add_argument("--db", type=store_arg, metavar="DB",
+                   help="labrunner store (a SQLite file or a PostgreSQL URL): on SQLite its full integrity check; "
+                        "then the schema version and every stored JSON column and sample blob decoded; each "
+                        "problem named by campaign, table and step (exit 2 when damaged)")
     p.set_defaults(func=cmd_check)
 
 
@@ -49,12 +51,12 @@ def cmd_check(args: argparse.Namespace) -> int:
               f"{len(steps) * p.frames_per_record:,} samples; about {p.estimated_duration_s() / 3600:.1f} h of lab "
               "time")
     if args.lab:
+        from labrunner.lab import describe_lab_config
+
         cfg = api.load_lab_config(args.lab)
-        c = cfg.chamber
-        where = f"{c.host}:{c.port}" if c.transport == "tcp" else str(c.serial_port)
-        print(f"{args.lab}: lab configuration '{cfg.name}' is valid: chamber Modbus {c.transport.upper()} {where} "
-              f"({c.profile if isinstance(c.profile, str) else 'custom profile'}), table {cfg.table.port}, "
-              f"IMU {cfg.imu.port} at {cfg.imu.rate_hz:g} Hz")
+        print(f"{args.lab}: lab configuration '{cfg.name}' is valid")
+        for line in describe_lab_config(cfg):
+            print(f"  {line}")
     if args.sim_config:
         sim = api.load_sim_config(args.sim_config)
         print(f"{args.sim_config}: sim configuration is valid (seed {sim.seed}, "
@@ -70,7 +72,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_store(db: Path) -> int:
+def _check_store(db: StoreAddress) -> int:
     """The store's damage, one line each (exit 2), or that it is clean (exit 0)."""
     from labrunner.store import Store
 
@@ -82,6 +84,8 @@ def _check_store(db: Path) -> int:
         for line in problems:
             print(f"  {line}")
         return 2
-    print(f"{db}: the store is intact: integrity check ok, {len(ids)} campaign(s), every JSON column and sample "
-          "blob readable")
+    pages = ("integrity check ok" if db.file is not None
+             else "page-level checks are the PostgreSQL server's job (checksums, amcheck)")
+    print(f"{db}: the store is intact: {pages}, schema version ok, {len(ids)} campaign(s), every JSON column and "
+          "sample blob readable")
     return 0

@@ -7,10 +7,10 @@ Campaign ids otherwise appear only in error messages; this is where a user finds
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from labrunner import api
 from labrunner.runner.lease import STALE_AFTER_S
+from labrunner.store_address import StoreAddress, store_arg
 
 HEADER = ("id", "name", "status", "steps", "samples", "mode", "process", "last heartbeat")
 
@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 examples:
   labrunner list c1.db
   labrunner status c1.db --campaign 2                       # then one of them in detail""")
-    p.add_argument("db", type=Path, metavar="DB", help="labrunner store")
+    p.add_argument("db", type=store_arg, metavar="DB", help="labrunner store: a SQLite file or a PostgreSQL URL")
     p.set_defaults(func=cmd_list)
 
 
@@ -51,7 +51,7 @@ def _process(s: api.CampaignSummary) -> str:
     return holder
 
 
-def table_text(db: Path, summaries: list[api.CampaignSummary]) -> str:
+def table_text(db: StoreAddress, summaries: list[api.CampaignSummary]) -> str:
     rows = [HEADER] + [(str(s.campaign_id), s.name, s.status, f"{s.steps_done}/{s.steps_total}", f"{s.samples:,}",
                         s.mode, _process(s), age_text(s.heartbeat_age_s)) for s in summaries]
     widths = [max(len(r[i]) for r in rows) for i in range(len(HEADER))]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from labrunner import api
 from labrunner.commands.types import count
+from labrunner.store_address import store_arg
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 examples:
   labrunner report quick.db --html quick.html
   labrunner report c1.db --campaign 2 --html c2.html --force    # the second campaign, replacing c2.html""")
-    p.add_argument("db", type=Path, metavar="DB", help="labrunner store")
+    p.add_argument("db", type=store_arg, metavar="DB", help="labrunner store")
     p.add_argument("--campaign", type=count, default=None, metavar="N",
                    help="campaign id (default: the latest in the database)")
     p.add_argument("--html", type=Path, required=True, metavar="FILE", help="the HTML file to write")

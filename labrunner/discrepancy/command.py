@@ -8,9 +8,9 @@ import sys
 from pathlib import Path
 
 from labrunner import api
-from labrunner.data_source import is_sqlite
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
+from labrunner.store_address import data_arg, is_store
 
 from .diagnose import TooLittleData
 from .terms import CAUSE_ORDER
@@ -28,7 +28,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 examples:
   labrunner diagnose lab.csv --json diagnosis.json --report diagnosis/
   labrunner diagnose quick.db --json d.json --causes thermal_lag,hysteresis""")
-    p.add_argument("data", metavar="DATA", help="campaign CSV or labrunner database (DB)")
+    p.add_argument("data", type=data_arg, metavar="DATA",
+                   help="campaign CSV or labrunner store (DB: a SQLite file or a PostgreSQL URL)")
     p.add_argument("--json", required=True, dest="json_out", metavar="FILE", help="write the diagnosis JSON here")
     p.add_argument("--report", metavar="DIR", help="also write plots, residuals.csv and summary.md here")
     p.add_argument("--model", metavar="FILE",
@@ -48,7 +49,7 @@ def handler(args: argparse.Namespace) -> int:
     json_out = Path(args.json_out)
     model_out = Path(args.model) if args.model else json_out.with_suffix(".imu_model.json")
     # All outputs checked before the (long) diagnosis: none may be the data, none overwritten unasked.
-    store = args.data if is_sqlite(args.data) else None  # read before anything here opens the store
+    store = args.data if is_store(args.data) else None  # read before anything here opens the store
     checked_json = check_output(json_out, store=store, inputs=[args.data], force=args.force, option="--json")
     if check_output(model_out, store=store, inputs=[args.data], force=args.force, option="--model") == checked_json:
         raise UserError(f"--model {model_out} and --json {json_out} are the same file; give two paths")
