@@ -12,11 +12,17 @@ One frame, 20 bytes, little-endian:
 
 The sims encode with `encode_frames`; the driver decodes with `FrameDecoder`, which
 keeps the bytes of a frame split across reads and skips corrupt bytes.
+
+`FrameCodec` is what the serial IMU reader (`drivers.imu_serial.SerialImu`) needs of a wire
+format: a stream decoder, the scale from decoded values to g, deg/s and degC, and an encoder for
+the simulator. `LABRUNNER_FRAME` is this 20-byte frame; `drivers.xsens_mti.XBUS` is the Xsens
+MTi's Xbus MTData2 stream.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -83,17 +89,63 @@ def encode_frames(counter: np.ndarray, accel_g: np.ndarray, gyro_dps: np.ndarray
 
 @dataclass
 class DecodedFrames:
-    """Frames decoded from one chunk of bytes (raw counts)."""
+    """Frames decoded from one chunk of bytes (in the codec's units: `FrameCodec.scale` makes them physical)."""
 
     counter: np.ndarray  # uint16 as sent
-    accel: np.ndarray  # (N, 3) int16 counts
-    gyro: np.ndarray  # (N, 3) int16 counts
-    temp: np.ndarray  # (N,) int16 counts
+    accel: np.ndarray  # (N, 3): int16 counts for this frame
+    gyro: np.ndarray  # (N, 3)
+    temp: np.ndarray  # (N,)
     corrupt: int  # corrupted stretches skipped (each at least one frame)
     skipped_bytes: int
 
     def __len__(self) -> int:
         return int(self.counter.size)
+
+
+@dataclass
+class Rejections:
+    """Why bytes did not become frames, counted over a stream's life (for the message that says so)."""
+
+    bad_checksum: int = 0  # a complete frame or message whose checksum did not match
+    bad_length: int = 0  # a length field no valid message has, or a payload that does not parse
+    other: dict[str, int] = field(default_factory=dict)  # codec-specific reasons (e.g. a message id)
+
+    def total(self) -> int:
+        return self.bad_checksum + self.bad_length + sum(self.other.values())
+
+    def describe(self) -> str:
+        parts = [f"{n} bad checksum" for n in [self.bad_checksum] if n]
+        parts += [f"{n} bad length" for n in [self.bad_length] if n]
+        parts += [f"{n} {why}" for why, n in sorted(self.other.items()) if n]
+        return ", ".join(parts) or "none"
+
+
+class StreamDecoder(Protocol):
+    """Feed bytes as they arrive, get whole valid frames; bad bytes are skipped and counted."""
+
+    frames: int
+    corrupt: int
+    skipped_bytes: int
+    rejected: Rejections
+
+    def feed(self, data: bytes) -> DecodedFrames: ...
+    def drop_partial(self) -> None: ...
+
+
+class FrameCodec(Protocol):
+    """A wire format for `SerialImu`: how its bytes decode, what its values mean, how a sim encodes them."""
+
+    name: str
+    frame_size: int  # bytes of one encoded frame as the sim sends it (fault injection corrupts inside one)
+    scale: tuple[float, float, float]  # decoded accel, gyro, temp times this: g, deg/s, degC
+    lsb: tuple[float, float, float] | None  # the same when values are whole counts (stored as int16), else None
+
+    def decoder(self) -> StreamDecoder: ...
+    def encode(self, counter: np.ndarray, accel_g: np.ndarray, gyro_dps: np.ndarray, temp_c: np.ndarray,
+               t_s: np.ndarray | None = None) -> bytes:
+        """Frames for N samples: counter (N,), accel (N, 3) g, gyro (N, 3) deg/s, temp (N,) degC, and their
+        times since power-on (N,) s for formats that carry a timestamp."""
+        ...
 
 
 class FrameDecoder:
@@ -105,6 +157,7 @@ class FrameDecoder:
         self.frames = 0
         self.corrupt = 0
         self.skipped_bytes = 0
+        self.rejected = Rejections()
 
     def drop_partial(self) -> None:
         """Forget a partial frame (the stream restarts mid-frame, e.g. after the link dropped)."""
@@ -121,6 +174,7 @@ class FrameDecoder:
             rows = buf[complete[:, None] + np.arange(FRAME_SIZE)]
             crc = rows[:, 18].astype(np.uint16) | (rows[:, 19].astype(np.uint16) << 8)
             ok = crc16_rows(rows[:, _CRC_SPAN]) == crc
+            self.rejected.bad_checksum += int((~ok).sum())
             accepted = _non_overlapping(complete[ok])
             rows = rows[ok][np.isin(complete[ok], accepted)] if accepted.size != ok.sum() else rows[ok]
         else:
@@ -166,6 +220,25 @@ class FrameDecoder:
             counter=frames["counter"].copy(), accel=frames["accel"].copy(), gyro=frames["gyro"].copy(),
             temp=frames["temp"].copy(), corrupt=corrupt, skipped_bytes=skipped,
         )
+
+
+class LabrunnerFrameCodec:
+    """The project's own 20-byte frame (this module) as a `FrameCodec`."""
+
+    name = "labrunner_frame"
+    frame_size = FRAME_SIZE
+    scale = (ACCEL_LSB_G, GYRO_LSB_DPS, TEMP_LSB_C)
+    lsb: tuple[float, float, float] | None = (ACCEL_LSB_G, GYRO_LSB_DPS, TEMP_LSB_C)
+
+    def decoder(self) -> FrameDecoder:
+        return FrameDecoder()
+
+    def encode(self, counter: np.ndarray, accel_g: np.ndarray, gyro_dps: np.ndarray, temp_c: np.ndarray,
+               t_s: np.ndarray | None = None) -> bytes:
+        return encode_frames(counter, accel_g, gyro_dps, temp_c)  # the frame has no timestamp
+
+
+LABRUNNER_FRAME = LabrunnerFrameCodec()
 
 
 def _non_overlapping(starts: np.ndarray) -> np.ndarray:

@@ -1,12 +1,15 @@
-"""Serial client for the IMU's binary frame stream.
+"""Serial client for an IMU's binary stream: the project's 20-byte frame or another `FrameCodec`.
 
 A reader thread waits on the line, decodes frames (vectorised, resynchronising after
 corrupt bytes) and keeps them with their counters unwrapped. A record is a window of
 consecutive counters: `begin_record()` marks the last frame received, the caller
 lets the recording time pass, and `end_record(start, n)` returns the n frames that
-follow, counting the ones that never arrived (counter gaps) as dropped. The link is
-reopened automatically when it drops. Reading and parsing happen under one lock, so
-`begin_record` sees every byte that has reached the port.
+follow, counting the ones that never arrived (counter gaps) as dropped. Frames that
+arrive out of order (a counter a little behind the newest) are put back in their place;
+repeated ones are dropped and counted. The link is reopened automatically when it drops.
+Reading and parsing happen under one lock, so `begin_record` sees every byte that has
+reached the port. A stream whose bytes arrive but never make a valid frame is reported
+as such (`stream_report`): bytes received, frames rejected and why, bytes skipped.
 """
 
 from __future__ import annotations
@@ -20,16 +23,24 @@ from collections.abc import Callable
 import numpy as np
 import serial
 
-from .errors import InstrumentError
-from .imu_frames import ACCEL_LSB_G, COUNTER_MODULO, GYRO_LSB_DPS, TEMP_LSB_C, FrameDecoder, unwrap_counter
+from .errors import InstrumentError, InstrumentProtocolError
+from .imu_frames import COUNTER_MODULO, LABRUNNER_FRAME, FrameCodec
 from .protocols import ImuRecord, ImuSample
 from .serial_link import close_quietly, open_serial
 
 READ_SIZE = 1 << 16
+# A counter at most this many frames behind the newest is a late (or repeated) frame; further
+# behind, it is the counter running on (a wrap past a long gap), as before reordering was handled.
+REORDER_WINDOW = 1024
+# Bytes of this many frames without one valid frame: the stream is not what the codec reads.
+NO_FRAME_AFTER = 3
 
 # Connects, link losses and resynchronisations are logged; single frames (50 Hz) never are:
 # corrupt stretches and duplicates at DEBUG as they happen, each record's counts at DEBUG.
 log = logging.getLogger(__name__)
+
+
+Chunk = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # counter, accel, gyro, temp (codec units)
 
 
 class SerialImu:
@@ -37,25 +48,31 @@ class SerialImu:
 
     def __init__(self, url: str, *, rate_hz: float = 50.0, baudrate: int = 921600, name: str = "imu",
                  keep_s: float = 600.0, reopen_s: float = 0.2,
-                 on_event: Callable[[str, str], None] | None = None) -> None:
+                 on_event: Callable[[str, str], None] | None = None, codec: FrameCodec = LABRUNNER_FRAME) -> None:
         self.name = name
         self.address = url
         self.rate_hz = float(rate_hz)
         self.baudrate = baudrate
+        self.codec = codec
         self.keep_frames = int(keep_s * rate_hz)
         self.reopen_s = reopen_s
         self.on_event = on_event  # (kind, message): link lost / restored, for the campaign's event log
         self._ser: serial.SerialBase | None = None
         self._cond = threading.Condition(threading.RLock())
-        self._decoder = FrameDecoder()
-        self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._decoder = codec.decoder()
+        self._chunks: list[Chunk] = []  # frames in counter order
+        self._late: list[Chunk] = []  # frames that arrived after a newer one, until a record takes them
         self._buffered = 0
-        self._last: int | None = None
+        self._last: int | None = None  # newest (unwrapped) counter
+        self._last_arrived16: int | None = None  # counter of the frame parsed last, in arrival order
         self._open_records: dict[int, int] = {}  # record start counter -> corrupt count at its start
+        self._since_restart = (0, 0)  # (bytes, frames) when the stream last (re)started
         self.bytes_received = 0
         self.frames_received = 0
         self.duplicates = 0
+        self.reordered = 0
         self.link_drops = 0
+        self._link_reported = False  # link state as last told (after the event): what a barrier may trust
         self._running = False
         self._thread: threading.Thread | None = None
 
@@ -65,7 +82,9 @@ class SerialImu:
         with self._cond:
             if self._ser is None:
                 self._ser = open_serial(self.address, baudrate=self.baudrate, timeout_s=0.0, instrument=self.name)
-                log.info("%s: stream open at %s (%g Hz expected)", self.name, self.address, self.rate_hz)
+                self._link_reported = True
+                log.info("%s: %s stream open at %s (%g Hz expected)", self.name, self.codec.name, self.address,
+                         self.rate_hz)
             if not self._running:
                 self._running = True
                 self._thread = threading.Thread(target=self._reader, name=f"{self.name}-reader", daemon=True)
@@ -79,9 +98,10 @@ class SerialImu:
         with self._cond:
             close_quietly(self._ser)
             self._ser = None
-        log.debug("%s: closed: %d frames, %d bytes, %d corrupt stretch(es), %d duplicate(s), %d link drop(s)",
-                  self.name, self.frames_received, self.bytes_received, self.corrupt, self.duplicates,
-                  self.link_drops)
+            self._link_reported = False
+        log.debug("%s: closed: %d frames, %d bytes, %d corrupt stretch(es), %d duplicate(s), %d reordered, "
+                  "%d link drop(s)", self.name, self.frames_received, self.bytes_received, self.corrupt,
+                  self.duplicates, self.reordered, self.link_drops)
 
     @property
     def corrupt(self) -> int:
@@ -89,7 +109,28 @@ class SerialImu:
 
     @property
     def link_up(self) -> bool:
-        return self._ser is not None
+        """The link as last reported: True once open (or restored, after its event), False once lost."""
+        return self._link_reported
+
+    @property
+    def streaming(self) -> bool:
+        """Connected and not closed: the reader keeps (re)opening the line."""
+        return self._running
+
+    def stream_report(self) -> str:
+        """What arrived since the stream (re)started: bytes, frames, and the frames rejected and why."""
+        d = self._decoder
+        got_bytes = self.bytes_received - self._since_restart[0]
+        got_frames = self.frames_received - self._since_restart[1]
+        return (f"{got_bytes} bytes received, {got_frames} valid {self.codec.name} frame(s); rejected: "
+                f"{d.rejected.describe()}; resynchronisation skipped {d.skipped_bytes} byte(s)")
+
+    def _check_stream(self) -> None:
+        """Bytes arrive but no frame is valid: say so (instead of 'no frames')."""
+        got_bytes = self.bytes_received - self._since_restart[0]
+        if self.frames_received == self._since_restart[1] and got_bytes >= NO_FRAME_AFTER * self.codec.frame_size:
+            raise InstrumentProtocolError(self.name, self.address, f"no valid frame: {self.stream_report()} "
+                                          f"(wrong format, baud rate or a damaged line?)")
 
     def _event(self, kind: str, message: str) -> None:
         if self.on_event:
@@ -104,6 +145,7 @@ class SerialImu:
                 self._decoder.drop_partial()  # a new connection starts mid-stream
                 log.warning("%s at %s: link lost (%s); reopening", self.name, self.address, exc)
                 self._event("imu_link_lost", f"{self.name} at {self.address}: link lost ({exc})")
+                self._link_reported = False
 
     def _reader(self) -> None:
         while self._running:
@@ -118,15 +160,20 @@ class SerialImu:
                     self._ser = fresh
                 log.info("%s at %s: link restored", self.name, self.address)
                 self._event("imu_link_restored", f"{self.name} at {self.address}: link restored")
+                self._link_reported = True
                 continue
             try:
+                # The port may be closed by another thread (a read there failed) between the two
+                # lines: pyserial's socket:// then has no socket (AttributeError on fileno).
                 ready, _, _ = select.select([ser.fileno()], [], [], 0.05)
-            except (OSError, ValueError, serial.SerialException) as exc:
-                self._lose_link(exc)
+            except (OSError, ValueError, AttributeError, TypeError, serial.SerialException) as exc:
+                if ser is self._ser:
+                    self._lose_link(exc)
                 continue
             if ready:
                 with self._cond:
-                    self._drain_locked()
+                    if ser is self._ser:
+                        self._drain_locked()
 
     def _drain_locked(self) -> None:
         """Read and parse whatever the port holds now (the port is non-blocking); a broken link is dropped."""
@@ -137,7 +184,7 @@ class SerialImu:
             # pyserial's socket:// in_waiting is only 0 or 1, so read large instead of asking.
             try:
                 data = ser.read(READ_SIZE)
-            except (OSError, serial.SerialException) as exc:
+            except (OSError, AttributeError, TypeError, serial.SerialException) as exc:
                 self._lose_link(exc)  # the reader thread reopens it
                 return
             if not data:
@@ -153,12 +200,11 @@ class SerialImu:
             log.debug("%s: resynchronised after %d corrupt stretch(es) (%d so far)", self.name, dec.corrupt,
                       self._decoder.corrupt)
         if len(dec):
-            counters = unwrap_counter(dec.counter, self._last)
-            fresh = counters > (self._last if self._last is not None else -1)
-            stale = int((~fresh).sum())
-            if stale:
-                log.debug("%s: %d duplicate or stale frame(s) ignored", self.name, stale)
-            self.duplicates += stale
+            self._last_arrived16 = int(dec.counter[-1])
+            counters, late = self._unwrap(dec.counter)
+            fresh = ~late
+            if late.any():
+                self._keep_late(counters[late], dec.accel[late], dec.gyro[late], dec.temp[late])
             if fresh.any():
                 counters = counters[fresh]
                 self._chunks.append((counters, dec.accel[fresh], dec.gyro[fresh], dec.temp[fresh]))
@@ -168,12 +214,62 @@ class SerialImu:
                 self._trim()
         self._cond.notify_all()
 
+    def _unwrap(self, counter16: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Unwrapped counters of a batch, relative to the newest so far, and which frames are late (or repeated)."""
+        c = counter16.astype(np.int64)
+        prev = np.empty_like(c)
+        prev[0] = (self._last % COUNTER_MODULO) if self._last is not None else c[0] - 1
+        prev[1:] = c[:-1]
+        delta = (c - prev) % COUNTER_MODULO
+        base = self._last if self._last is not None else int(c[0]) - 1
+        if np.all((delta > 0) & (delta < COUNTER_MODULO - REORDER_WINDOW)):
+            return base + np.cumsum(delta), np.zeros(c.size, bool)  # in order (gaps allowed): the usual case
+        out = np.empty_like(c)
+        late = np.zeros(c.size, bool)
+        newest = base
+        for i, value in enumerate(c.tolist()):
+            d = (value - newest) % COUNTER_MODULO
+            if 0 < d < COUNTER_MODULO - REORDER_WINDOW:
+                newest += d
+                out[i] = newest
+            else:  # d == 0 (a repeat of the newest) or a little behind it
+                out[i] = newest - ((COUNTER_MODULO - d) % COUNTER_MODULO)
+                late[i] = True
+        return out, late
+
+    def _keep_late(self, counters: np.ndarray, accel: np.ndarray, gyro: np.ndarray, temp: np.ndarray) -> None:
+        """Late frames go back in their place unless they are repeats of frames already here."""
+        seen = np.zeros(counters.size, bool)
+        lo = int(counters.min())
+        for ch in reversed(self._chunks):
+            seen |= np.isin(counters, ch[0])
+            if ch[0][0] <= lo:
+                break
+        for ch in self._late:
+            seen |= np.isin(counters, ch[0])
+        _, first = np.unique(counters, return_index=True)  # a frame repeated within the batch counts once
+        once = np.zeros(counters.size, bool)
+        once[first] = True
+        keep = ~seen & once
+        dup = int((~keep).sum())
+        if dup:
+            self.duplicates += dup
+            log.debug("%s: %d repeated frame(s) dropped", self.name, dup)
+        if keep.any():
+            self._late.append((counters[keep], accel[keep], gyro[keep], temp[keep]))
+            self.reordered += int(keep.sum())
+            self.frames_received += int(keep.sum())
+            log.debug("%s: %d frame(s) arrived out of order, put back in place", self.name, int(keep.sum()))
+
     def _trim(self) -> None:
         oldest_needed = min(self._open_records, default=None)
         while len(self._chunks) > 1 and self._buffered - self._chunks[0][0].size >= self.keep_frames:
             if oldest_needed is not None and self._chunks[0][0][-1] > oldest_needed:
                 break
             self._buffered -= self._chunks.pop(0)[0].size
+        if self._late:
+            first = self._chunks[0][0][0]
+            self._late = [ch for ch in self._late if ch[0].max() >= first]
 
     # --- the Imu interface ------------------------------------------------------------------
 
@@ -183,27 +279,34 @@ class SerialImu:
         with self._cond:
             self._drain_locked()
             self._chunks.clear()
+            self._late.clear()
             self._buffered = 0
             self._last = None
+            self._last_arrived16 = None
             self._open_records.clear()
+            self._since_restart = (self.bytes_received, self.frames_received)
 
     def latest(self) -> ImuSample | None:
+        """The newest frame; None when none has arrived yet. Bytes without a valid frame raise
+        InstrumentProtocolError saying what arrived."""
         with self._cond:
             if not self._chunks:
+                self._check_stream()
                 return None
             c, a, g, t = self._chunks[-1]
-            return ImuSample(counter=int(c[-1]), accel_g=tuple((a[-1] * ACCEL_LSB_G).tolist()),
-                             gyro_dps=tuple((g[-1] * GYRO_LSB_DPS).tolist()), temp_c=float(t[-1]) * TEMP_LSB_C)
+            ka, kg, kt = self.codec.scale
+            return ImuSample(counter=int(c[-1]), accel_g=tuple((a[-1] * ka).tolist()),
+                             gyro_dps=tuple((g[-1] * kg).tolist()), temp_c=float(t[-1]) * kt)
 
     def last_counter16(self) -> int | None:
         last = self._last
         return None if last is None else last % COUNTER_MODULO
 
     def wait_counter16(self, counter16: int, timeout_s: float) -> bool:
-        """Wait until the frame with this 16-bit counter is the latest parsed (dry-run barrier)."""
+        """Wait until the frame with this 16-bit counter is the last parsed, in arrival order (dry-run barrier)."""
         with self._cond:
             self._drain_locked()
-            return self._cond.wait_for(lambda: self.last_counter16() == counter16, timeout_s)
+            return self._cond.wait_for(lambda: self._last_arrived16 == counter16, timeout_s)
 
     def begin_record(self) -> int:
         """Mark the start of a record: the counter of the last frame received (-1: none yet, the
@@ -227,13 +330,20 @@ class SerialImu:
             self._cond.wait_for(lambda: self._last is not None and self._last >= end, timeout_s)
             corrupt = self._decoder.corrupt - corrupt_at_start
             parts = [ch for ch in self._chunks if ch[0][-1] > start and ch[0][0] <= end]
-        if parts:
-            counter = np.concatenate([p[0] for p in parts])
+            late = [ch for ch in self._late if ch[0].max() > start and ch[0].min() <= end]
+            if not parts and not late and self.bytes_received > self._since_restart[0]:
+                self._check_stream()
+        ka, kg, kt = self.codec.scale
+        if parts or late:
+            counter = np.concatenate([p[0] for p in parts + late])
             sel = (counter > start) & (counter <= end)
             counter = counter[sel]
-            accel = np.concatenate([p[1] for p in parts])[sel] * ACCEL_LSB_G
-            gyro = np.concatenate([p[2] for p in parts])[sel] * GYRO_LSB_DPS
-            temp = np.concatenate([p[3] for p in parts])[sel] * TEMP_LSB_C
+            accel = np.concatenate([p[1] for p in parts + late])[sel] * ka
+            gyro = np.concatenate([p[2] for p in parts + late])[sel] * kg
+            temp = np.concatenate([p[3] for p in parts + late])[sel] * kt
+            if late:  # late frames were kept apart: back in counter order
+                order = np.argsort(counter, kind="stable")
+                counter, accel, gyro, temp = counter[order], accel[order], gyro[order], temp[order]
         else:
             counter = np.zeros(0, np.int64)
             accel = gyro = np.zeros((0, 3))
@@ -242,4 +352,4 @@ class SerialImu:
                   counter.size, n_frames, corrupt)
         return ImuRecord(counter=counter, accel_g=accel, gyro_dps=gyro, temp_c=temp, expected=n_frames,
                          dropped=n_frames - int(counter.size), corrupt=corrupt,
-                         lsb=(ACCEL_LSB_G, GYRO_LSB_DPS, TEMP_LSB_C))
+                         lsb=self.codec.lsb)

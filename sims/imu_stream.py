@@ -1,4 +1,5 @@
-"""The simulated IMU: a stream of binary frames (drivers.imu_frames) at its output rate.
+"""The simulated IMU: a stream of binary frames at its output rate, in the project's 20-byte frame
+(drivers.imu_frames) or the Xsens MTi's Xbus MTData2 messages (drivers.xsens_mti): `IMU_FORMATS`.
 
 Frames exist for every sample time t_on + k / rate up to the clock's time while the
 IMU is powered; `emit_until(t)` sends the ones not sent yet. With a virtual clock it
@@ -17,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from labrunner.clock import Clock
-from labrunner.drivers.imu_frames import FRAME_SIZE, encode_frames
+from labrunner.drivers.imu_frames import LABRUNNER_FRAME, FrameCodec
+from labrunner.drivers.xsens_mti import XBUS
 from labrunner.imu.model import ModelState
 
 from .links import SimPort
@@ -26,6 +28,9 @@ from .world import SimWorld
 log = logging.getLogger(__name__)
 
 MAX_CHUNK_S = 60.0  # generate long sleeps in pieces to bound memory
+# Wire formats a sim configuration may ask for (`imu_format`), and the lab driver that reads each.
+IMU_FORMATS: dict[str, FrameCodec] = {"labrunner_frame": LABRUNNER_FRAME, "xsens_mti": XBUS}
+IMU_DRIVERS = {"labrunner_frame": None, "xsens_mti": "xsens_mti"}  # None: the lab's default IMU driver
 
 
 @dataclass
@@ -37,11 +42,13 @@ class ImuFaults:
 
 
 class ImuStreamSim:
-    def __init__(self, world: SimWorld, clock: Clock, port: SimPort, rate_hz: float = 50.0, seed: int = 0) -> None:
+    def __init__(self, world: SimWorld, clock: Clock, port: SimPort, rate_hz: float = 50.0, seed: int = 0,
+                 codec: FrameCodec = LABRUNNER_FRAME) -> None:
         self.world = world
         self.clock = clock
         self.port = port
         self.rate_hz = float(rate_hz)
+        self.codec = codec
         self.faults = ImuFaults()
         self.state = ModelState()
         self._rng = np.random.default_rng([seed, 0x1A2B])
@@ -83,7 +90,7 @@ class ImuStreamSim:
             inputs = w.imu_inputs(times)
             out, self.state = w.model.simulate(inputs, self.rate_hz, self._rng, self.state)
             self._next_k = k_last + 1
-        return ks, encode_frames(ks, out[:, :3], out[:, 3:], inputs.temp_c)
+        return ks, self.codec.encode(ks, out[:, :3], out[:, 3:], inputs.temp_c, t_s=times - w.t_on)
 
     def _send(self, ks: np.ndarray, data: bytes) -> None:
         f = self.faults
@@ -99,12 +106,13 @@ class ImuStreamSim:
             keep[:n] = False
             f.skip_frames -= n
             log.debug("imu sim: %d frame(s) not sent (counter gap)", n)
-        raw = np.frombuffer(data, dtype=np.uint8).reshape(ks.size, FRAME_SIZE).copy()
+        size = self.codec.frame_size
+        raw = np.frombuffer(data, dtype=np.uint8).reshape(ks.size, size).copy()
         intact = keep.copy()
         if f.corrupt_frames:
             n = min(f.corrupt_frames, int(keep.sum()))
             idx = np.flatnonzero(keep)[:n]
-            pos = self._fault_rng.integers(2, FRAME_SIZE, size=n)
+            pos = self._fault_rng.integers(2, size, size=n)  # after the sync bytes: found, then rejected
             raw[idx, pos] ^= self._fault_rng.integers(1, 256, size=n).astype(np.uint8)
             intact[idx] = False
             f.corrupt_frames -= n

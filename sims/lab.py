@@ -18,7 +18,7 @@ from labrunner.fault_kinds import FaultKind
 from .aio import LoopThread
 from .chamber_server import ChamberServer
 from .faults import SimFaults
-from .imu_stream import ImuStreamSim
+from .imu_stream import IMU_DRIVERS, IMU_FORMATS, ImuStreamSim
 from .links import PtyPort, SimPort, TcpSerialPort
 from .table_server import TableServer
 from .world import SimLabConfig, SimWorld
@@ -52,7 +52,8 @@ class SimLab:
         self.table_port: SimPort = TcpSerialPort(host, ports.table) if link == "tcp" else PtyPort()
         self.imu_port: SimPort = TcpSerialPort(host, ports.imu) if link == "tcp" else PtyPort()
         self.table = TableServer(self.world, clock, self.table_port, seed=config.seed)
-        self.imu = ImuStreamSim(self.world, clock, self.imu_port, rate_hz=config.imu_rate_hz, seed=config.seed)
+        self.imu = ImuStreamSim(self.world, clock, self.imu_port, rate_hz=config.imu_rate_hz, seed=config.seed,
+                                codec=IMU_FORMATS[config.imu_format])
         if isinstance(clock, VirtualClock):
             clock.add_listener(self.imu.emit_until)
         else:
@@ -107,11 +108,15 @@ class SimLab:
         chamber["profile"] = self.chamber_profile
         # Loopback answers within a millisecond: short timeouts keep faulted dry runs quick.
         chamber["timeout_s"] = 0.25
+        imu: dict[str, Any] = {"port": self.imu_port.url, "baudrate": 921600, "rate_hz": self.config.imu_rate_hz}
+        driver = IMU_DRIVERS[self.config.imu_format]
+        if driver is not None:  # another wire format than the project's frame: the driver that reads it
+            imu = {"driver": driver, **imu}
         return {
             "name": "simulated lab",
             "chamber": chamber,
             "table": {"port": self.table_port.url, "baudrate": 115200, "timeout_s": 0.25},
-            "imu": {"port": self.imu_port.url, "baudrate": 921600, "rate_hz": self.config.imu_rate_hz},
+            "imu": imu,
         }
 
     def remount(self, orientation: str) -> None:

@@ -59,6 +59,7 @@ class SimLabConfig:
     imu_thermal: ImuThermalParams = field(default_factory=ImuThermalParams)
     imu_model: ImuModel = field(default_factory=default_imu_model)
     imu_rate_hz: float = 50.0
+    imu_format: str = "labrunner_frame"  # the IMU's wire format (sims.imu_stream.IMU_FORMATS), e.g. xsens_mti
     orientation: str = "z_up"
     faults: dict[str, Any] = field(default_factory=dict)
     operator: SimOperatorParams = field(default_factory=SimOperatorParams)
@@ -91,9 +92,16 @@ class SimLabConfig:
         seed = int(data.get("seed", 0))
         imu_model.seed = int(model.get("seed", seed)) if isinstance(model, dict) else seed
         up_vector(str(data.get("orientation", "z_up")))  # validates
+        imu_format = data.get("imu_format", "labrunner_frame")
+        from .imu_stream import IMU_FORMATS  # here: imu_stream imports this module
+
+        if imu_format not in IMU_FORMATS:
+            raise ValueError(f"sim configuration imu_format must be one of {', '.join(IMU_FORMATS)}, "
+                             f"got {imu_format!r}")
         return cls(seed=seed, chamber=sub(ChamberParams, "chamber"), table=sub(TableParams, "table"),
                    imu_thermal=sub(ImuThermalParams, "imu_thermal"), imu_model=imu_model,
-                   imu_rate_hz=float(data.get("imu_rate_hz", 50.0)), orientation=str(data.get("orientation", "z_up")),
+                   imu_rate_hz=float(data.get("imu_rate_hz", 50.0)), imu_format=str(imu_format),
+                   orientation=str(data.get("orientation", "z_up")),
                    faults=dict(data.get("faults") or {}), operator=sub(SimOperatorParams, "operator"))
 
 
