@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +49,9 @@ class ConfigError(UserError):
 
 
 def show_number(value: Any) -> str:
-    """A value for a message: huge integers by their size (their digits could be thousands)."""
+    """A value for a message, as YAML writes it; huge integers by their size (their digits could be thousands)."""
+    if isinstance(value, bool) or value is None:
+        return {True: "true", False: "false", None: "null"}[value]
     if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**15:
         return f"{'-' if value < 0 else ''}an integer of {value.bit_length()} bits"
     if isinstance(value, float):
@@ -66,13 +69,16 @@ class Range:
     integer: bool = False
 
     def describe(self) -> str:
-        return f"{self.lo:g}..{self.hi:g}{' ' + self.unit if self.unit else ''}"
+        def num(v: float) -> str:
+            return f"{int(v)}" if self.integer else f"{v:g}"
+
+        return f"{num(self.lo)}..{num(self.hi)}{' ' + self.unit if self.unit else ''}"
 
     def problem(self, value: Any) -> str | None:
         """Why `value` is not allowed (as the end of a sentence naming the key), or None."""
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             kind = "a whole number" if self.integer else "a number"
-            return f"must be {kind} in {self.describe()}, got {value!r}"
+            return f"must be {kind} in {self.describe()}, got {show_number(value)}"
         if isinstance(value, float):
             if not math.isfinite(value):
                 return f"must be a finite number in {self.describe()}, got {value}"
@@ -176,6 +182,13 @@ class _Loader(yaml.SafeLoader):
                 raise _Refused(self.peek_event().start_mark.line + 1,
                                f"more than {MAX_ALIASES} YAML aliases (*name); write the values out")
         return super().compose_node(parent, index)  # type: ignore[no-any-return]
+
+
+# YAML 1.1 (PyYAML) reads `1e-9` and `1e3` as text; people mean numbers (YAML 1.2 reads them so).
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
 
 
 _NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
@@ -378,10 +391,11 @@ def validate(model: type[M], data: Any, positions: Mapping[tuple[Any, ...], int]
             if err.get("type") == "extra_forbidden" and loc:
                 what += did_you_mean(loc[-1], _fields_at(model, tuple(p for p in loc[:-1] if not (
                     isinstance(p, str) and p.startswith(("function-", "union["))))))
-            elif err.get("type") == "value_error" and what.startswith("["):
-                # A ranged list's item: the index joins the key path (`rates.list_dps[2] must be ...`).
-                index, _, what = what.partition("] ")
-                loc = loc + (int(index[1:]),)
+            elif err.get("type") == "value_error" and what.startswith(("[", ".")):
+                # A problem inside the value (a list's item, a mapping's key): it joins the key path
+                # (`rates.list_dps[2] must be ...`, `chamber.profile.setpoint must be ...`).
+                inner, _, what = what.partition(" ")
+                loc = loc + ((int(inner[1:-1]),) if inner.startswith("[") else (inner[1:],))
             lines.append(f"{_located(source, positions, loc)}: {_dotted(loc)} {what}")
         raise ConfigError(lines) from None
 

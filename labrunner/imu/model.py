@@ -195,9 +195,9 @@ class ImuModel:
         """Load a model written by `save` (JSON) or a YAML file of the same shape."""
         text = Path(path).read_text()
         if str(path).endswith((".yaml", ".yml")):
-            import yaml
+            from labrunner.yaml_config import load_yaml  # the one YAML reader: size, aliases, duplicate keys
 
-            data = yaml.safe_load(text)
+            data, _ = load_yaml(text, str(path))
         else:
             data = json.loads(text)
         if not isinstance(data, Mapping):
