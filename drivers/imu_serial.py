@@ -203,14 +203,14 @@ class SerialImu:
             self._last_arrived16 = int(dec.counter[-1])
             counters, late = self._unwrap(dec.counter)
             fresh = ~late
-            if late.any():
+            if fresh.any():
+                self._chunks.append((counters[fresh], dec.accel[fresh], dec.gyro[fresh], dec.temp[fresh]))
+                self._buffered += int(fresh.sum())
+                self._last = int(counters[fresh][-1])
+                self.frames_received += int(fresh.sum())
+            if late.any():  # after the batch's own frames: a repeat of one of them is found
                 self._keep_late(counters[late], dec.accel[late], dec.gyro[late], dec.temp[late])
             if fresh.any():
-                counters = counters[fresh]
-                self._chunks.append((counters, dec.accel[fresh], dec.gyro[fresh], dec.temp[fresh]))
-                self._buffered += counters.size
-                self._last = int(counters[-1])
-                self.frames_received += counters.size
                 self._trim()
         self._cond.notify_all()
 

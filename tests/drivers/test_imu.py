@@ -101,3 +101,76 @@ def test_decoder_counts_a_corrupt_stretch_once_however_bytes_arrive():
         dec = FrameDecoder()
         got = sum(len(dec.feed(bytes(raw[i:i + step]))) for i in range(0, len(raw), step))
         assert got == n - 3 and dec.corrupt == 3, step
+
+
+@pytest.fixture
+def raw_line():
+    """A driver on a socket line the test writes exact bytes to."""
+    port = TcpSerialPort()
+    drv = SerialImu(port.url, rate_hz=50.0)
+    drv.connect()
+    assert port.wait_connected(2.0)
+    yield drv, port
+    drv.close()
+    port.close()
+
+
+def _frames(counters):
+    from labrunner.drivers.imu_frames import encode_frames
+
+    n = len(counters)
+    return encode_frames(np.asarray(counters), np.tile([0.0, 0.0, 1.0], (n, 1)), np.zeros((n, 3)), np.full(n, 25.0))
+
+
+def test_a_stream_of_only_bad_frames_says_what_arrived(raw_line):
+    import time
+
+    from labrunner.drivers.errors import InstrumentProtocolError
+
+    drv, port = raw_line
+    bad = bytearray(_frames(range(40)))
+    for k in range(40):
+        bad[k * FRAME_SIZE + 18] ^= 0x5A  # every CRC wrong
+    data = bytes(bad) + b"\x00\x11\x22" * 50  # and line noise
+    port.write(data)
+    deadline = time.monotonic() + 5.0
+    while drv.bytes_received < len(data) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    with pytest.raises(InstrumentProtocolError) as err:
+        drv.latest()
+    message = str(err.value)
+    assert f"{len(data)} bytes received, 0 valid labrunner_frame frame(s)" in message
+    # The last 19 bytes may still begin a frame: not skipped yet.
+    assert "rejected: 40 bad checksum" in message and f"skipped {len(data) - (FRAME_SIZE - 1)} byte(s)" in message
+    start = drv.begin_record()
+    with pytest.raises(InstrumentProtocolError, match="no valid frame"):
+        drv.end_record(start, 10, timeout_s=0.1)
+
+
+def test_out_of_order_and_repeated_frames_do_not_cost_the_record(raw_line):
+    drv, port = raw_line
+    port.write(_frames([0]))
+    assert drv.wait_counter16(0, 2.0)
+    start = drv.begin_record()
+    order = list(range(1, 201))
+    for i in range(3, 200, 20):  # 5 % of the frames one place late
+        order[i], order[i + 1] = order[i + 1], order[i]
+    order.insert(50, order[49])  # and one repeat
+    order.insert(120, 117)  # and one from further back, already received
+    port.write(_frames(order))
+    assert drv.wait_counter16(order[-1], 2.0)
+    rec = drv.end_record(start, 200, timeout_s=0.5)
+    assert len(rec) == 200 and rec.dropped == 0
+    assert np.array_equal(rec.counter, np.arange(1, 201))
+    assert drv.reordered == 10 and drv.duplicates == 2
+    assert drv.latest().counter == 200
+
+
+def test_a_counter_far_behind_is_the_stream_running_on_not_a_late_frame(raw_line):
+    drv, port = raw_line
+    port.write(_frames([30000, 30001]))
+    assert drv.wait_counter16(30001, 2.0)
+    start = drv.begin_record()
+    port.write(_frames([5, 6, 7]))  # an IMU reset without a restart_stream: read as a jump forward
+    assert drv.wait_counter16(7, 2.0)
+    assert drv.latest().counter > start and drv.duplicates == 0
