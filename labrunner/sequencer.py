@@ -52,7 +52,9 @@ from labrunner.runner.fault_log import FaultLog
 from labrunner.runner.fault_policy import Action, AutoResume, FaultPolicy
 from labrunner.runner.interlocks import Interlocks, Readings
 from labrunner.runner.journal import Journal
+from labrunner.runner.last_state import last_mount
 from labrunner.runner.monitor import ImuMonitor
+from labrunner.runner.mount_check import InPlace, MountVerdict, in_place, judge, read_accel
 from labrunner.runner.preflight import check_chamber, check_table
 from labrunner.runner.safe_stop import safe_stop
 from labrunner.runner.soak import SoakProgress, SoakWindow, soak_timeout
@@ -443,10 +445,58 @@ class CampaignRunner:
         self._check_requests()
         if self.k is None:
             self.all_recorded()
-        elif self.mounted_orientation == self.step.orientation:
+            return
+        # The same gravity check as after a remount, for the orientation the next step plans.
+        verdict = self._check_mount(self.step.orientation)
+        if verdict is not None:
+            # Before a campaign's first mount a mismatch is news, not a problem: the operator mounts it next.
+            self.event("info", f"preflight mount check: {verdict.describe()}"
+                       + ("" if verdict.ok else " (the remount prompt follows)"), **verdict.detail())
+        if self.mounted_orientation == self.step.orientation and (verdict is None or verdict.ok):
             self.resume_mounted()  # resumed in the same session: the IMU is still mounted and powered
+        elif self._resume_in_place(verdict):
+            self.resume_mounted()
         else:
+            self.mounted_orientation = None
             self.preflight_ok()
+
+    def _check_mount(self, planned: str) -> MountVerdict | None:
+        """A second or so of accelerometer frames judged against `planned` (None: the check is off)."""
+        check = self.p.mount_check
+        if not check.enabled:
+            return None
+        accel = read_accel(self.lab.imu, self._wait, check.read_s, self._grace(check.read_s))
+        return judge(accel, planned, max_angle_deg=check.max_angle_deg,
+                     gravity_tolerance_g=check.gravity_tolerance_g)
+
+    def _resume_in_place(self, verdict: MountVerdict | None) -> bool:
+        """A campaign mounted before (another session, a crash): go on without a remount or a ramp to room
+        temperature when the IMU still stands as the next step plans and the chamber is near its setpoint."""
+        if not self.p.resume.in_place or self.mounted_orientation is not None:
+            return False
+        before = last_mount(self.store, self.cid)
+        if before is None:
+            return False  # never mounted: the operator mounts the first orientation (and gravity checks it)
+        step = self.step
+        pv = self.lab.chamber.read_temperature()
+        self._saw(pv)
+        self._interlocks(chamber_c=pv)
+        decision = in_place(verdict, pv, step.temperature_c, self.p.resume.chamber_tolerance_c)
+        if decision.ok and before.orientation != step.orientation:
+            # Gravity agrees, but the sequencer last mounted another orientation: it was turned behind its
+            # back (a new run, unrecorded), so it is mounted again, through the prompt.
+            decision = InPlace(False, f"the last mount the campaign recorded was {before.orientation}, the next "
+                                      f"step plans {step.orientation}")
+        if not decision.ok:
+            self.event("info", f"resume: remounting: {decision.reason}", orientation=step.orientation)
+            return False
+        # The IMU was never powered off: the data go on in the run it was in.
+        self.run_no = max(self.run_no, before.run)
+        self.mounted_orientation = step.orientation
+        self.event("info", f"resumed in place: {decision.reason}; step {step.index} ({step.orientation}, "
+                           f"{step.temperature_c:g} C) without a remount or a ramp to room temperature (run "
+                           f"{self.run_no})", orientation=step.orientation, run=self.run_no, chamber_c=pv)
+        return True
 
     def _do_mounting(self) -> None:
         step = self.step
@@ -457,14 +507,32 @@ class CampaignRunner:
         if not self._wait_chamber(self.p.remount_c, max(2.0, self.p.soak.tolerance_c), self.p.soak.max_wait_s) \
                 and not self._soak_timeout("remount"):
             return
-        prompt = self.procedure.prompt_for(step.orientation)
-        self.event("operator", f"remount: {prompt}", orientation=step.orientation)
-        self._report()
-        lab.operator.remount(step.orientation, prompt)
+        self.mounted_orientation = None  # from the prompt on, nothing is mounted until gravity says so
+        asked = self.procedure.prompt_for(step.orientation)
+        prompt = asked
+        tries = self.p.mount_check.tries
+        for attempt in range(1, tries + 1):
+            self.event("operator", f"remount: {prompt}", orientation=step.orientation, attempt=attempt)
+            self._report()
+            lab.operator.remount(step.orientation, prompt)
+            lab.imu.restart_stream()
+            verdict = self._check_mount(step.orientation)
+            if verdict is None or verdict.ok:
+                break
+            self.event("warning", f"mount refused (try {attempt} of {tries}): {verdict.describe()}",
+                       **verdict.detail())
+            prompt = f"{asked} The IMU does not stand as planned ({verdict.describe()}); mount it again."
+        else:
+            assert verdict is not None
+            self.last_error = (f"mount of {step.orientation} not confirmed by gravity in {tries} tries "
+                               f"({verdict.describe()}); pausing: mount the IMU {step.orientation}, then resume")
+            self.event("fault", self.last_error, **verdict.detail())
+            self._act("pause", by_fault=False)  # a person must look at it: no auto-resume
+            return
         self.run_no += 1
         self.mounted_orientation = step.orientation
-        lab.imu.restart_stream()
-        self.event("operator", f"IMU mounted {step.orientation}, powered on (run {self.run_no})",
+        checked = f"; gravity: {verdict.measured_words()}" if verdict is not None else ""
+        self.event("operator", f"IMU mounted {step.orientation}, powered on (run {self.run_no}){checked}",
                    orientation=step.orientation, run=self.run_no)
         self.mounted()
 

@@ -105,7 +105,7 @@ def _problems(data: dict[str, Any], positions: dict[tuple[Any, ...], int], name:
     problems: list[str] = []
     config_fields = {f.name: f for f in dataclasses.fields(SimLabConfig)}
     keys(data, config_fields)
-    for section in ("chamber", "table", "imu_thermal"):
+    for section in ("chamber", "table", "imu_thermal", "operator"):
         value = data.get(section)
         if value is None:
             continue
@@ -114,6 +114,16 @@ def _problems(data: dict[str, Any], positions: dict[tuple[Any, ...], int], name:
             continue
         klass = config_fields[section].default_factory  # type: ignore[misc]
         keys(value, {f.name for f in dataclasses.fields(klass)}, section)  # type: ignore[arg-type]
+    operator = data.get("operator")
+    if isinstance(operator, dict):  # the simulated operator's wrong mounts (SimOperatorParams checks them)
+        from labrunner.sims.world import SimOperatorParams
+
+        for key in ("wrong_mounts", "mounts_as"):
+            if key in operator:
+                try:
+                    SimOperatorParams(**{key: operator[key]})
+                except ValueError as exc:
+                    problems.append(f"{at('operator', key)}: {exc}")
     orientation = data.get("orientation")
     if orientation is not None and orientation not in ORIENTATIONS:
         problems.append(f"{at('orientation')}: orientation must be one of {', '.join(ORIENTATIONS)}, got "

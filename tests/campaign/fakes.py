@@ -196,17 +196,25 @@ class FakeImu(_Fake):
 
 
 class FakeOperator:
-    """Remounts at once in the orientation asked (taking `remount_s` of clock time), and says so."""
+    """Remounts at once in the orientation asked (taking `remount_s` of clock time), and says so; `mount_wrongly`
+    makes the next remounts turn the IMU elsewhere (or, with None, leave it as it was)."""
 
     def __init__(self, clock: VirtualClock, imu: FakeImu, remount_s: float = 60.0) -> None:
         self.clock = clock
         self.imu = imu
         self.remount_s = remount_s
         self.remounts: list[tuple[float, str, str]] = []
+        self._wrong: list[str | None] = []
+
+    def mount_wrongly(self, *orientations: str | None) -> None:
+        """The next len(orientations) remounts mount these instead of the one asked (None: skipped)."""
+        self._wrong.extend(orientations)
 
     def remount(self, orientation: str, prompt: str) -> None:
         self.remounts.append((self.clock.now(), orientation, prompt))
         self.clock.sleep(self.remount_s)
+        if self._wrong:
+            orientation = self._wrong.pop(0) or self.imu.orientation
         self.imu.orientation = orientation
 
 

@@ -160,7 +160,7 @@ def test_abort_with_no_process_running_makes_the_lab_safe_itself(tmp_path, serve
     p.kill()
     p.communicate(timeout=30)
     cfg = lab_config_from_dict(yaml.safe_load(served_lab.read_text()))
-    table = SerialRateTable(cfg.table.port, max_rate_dps=200)
+    table = SerialRateTable(cfg.section("table").port, max_rate_dps=200)
     try:
         table.jog(40.0)  # make sure it spins, whatever step the kill interrupted
         time.sleep(0.2)
@@ -181,3 +181,52 @@ def test_abort_with_no_process_running_makes_the_lab_safe_itself(tmp_path, serve
         lab.close()
     with Store.open_existing(db) as store:
         assert store.campaign(1).status == "aborted"
+
+
+def test_an_enter_typed_ahead_on_the_terminal_does_not_confirm_the_remount(tmp_path, served_lab):
+    """`labrunner run` with a pseudo-terminal as stdin: an Enter typed before the prompt appears is
+    discarded (the campaign waits at the prompt, nothing is mounted or recorded); the Enter typed after
+    it confirms the mount, and the run goes to the end."""
+    import os
+    import pty
+
+    (tmp_path / "p.yaml").write_text(PROC)
+    db = tmp_path / "r.db"
+    master, slave = pty.openpty()
+    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(tmp_path / "p.yaml"), "--lab",
+                          str(served_lab), "--db", str(db), "--quiet"], stdin=slave, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    os.close(slave)
+    err: list[str] = []
+    prompted = threading.Event()
+
+    def read_err() -> None:
+        for line in p.stderr:
+            err.append(line)
+            if line.startswith(">>> Press Enter"):
+                prompted.set()
+
+    reader = threading.Thread(target=read_err, daemon=True)
+    reader.start()
+    try:
+        os.write(master, b"\n")  # typed ahead, while the run starts
+        assert prompted.wait(60), "".join(err)
+        time.sleep(1.5)  # 75 s of lab time at 50x: a confirmed mount would have recorded by now
+        assert p.poll() is None
+        with Store.open_existing(db) as store:
+            ev = store.events_frame(store.resolve(None))
+        assert ev.message.str.startswith("remount: Mount the IMU z up").sum() == 1
+        assert not ev.message.str.startswith("IMU mounted").any() and _steps_done(db) == 0
+        os.write(master, b"\n")  # the operator's answer
+        p.wait(120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(10)
+        os.close(master)
+    reader.join(10)
+    assert p.returncode == 0, "".join(err)
+    with Store.open_existing(db) as store:
+        ev = store.events_frame(store.resolve(None))
+    assert ev.message.str.startswith("IMU mounted z_up, powered on (run 1); gravity: z axis up").sum() == 1
+    assert _steps_done(db) == 4
