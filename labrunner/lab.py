@@ -134,13 +134,11 @@ def describe_lab_config(config: LabConfig) -> list[str]:
     lines = []
     for kind in registry.KINDS:
         inst = config.instrument(kind)
+        d = inst.section.model_dump()
         extra = ""
-        if kind == "chamber" and "profile" in type(inst.section).model_fields:
-            profile = inst.section.profile
-            extra = f", profile {profile if isinstance(profile, str) else 'custom'}"
-        if kind == "table" and "language" in type(inst.section).model_fields:
-            language = inst.section.language
-            extra = f", language {language if isinstance(language, str) else 'custom'}"
+        for key in ("profile", "language"):  # the map or command language a generic driver was given
+            if key in d:
+                extra += f", {key} {d[key] if isinstance(d[key], str) else 'custom'}"
         lines.append(f"{kind:8s} driver {inst.driver.name} ({inst.driver.distribution}{extra}) at "
                      f"{_where(inst.section)}")
     lines.append("installed drivers:")
@@ -209,8 +207,9 @@ def real_lab(config: LabConfig, *, max_rate_dps: float, operator: Operator | Non
 
 def simulated_lab(*, max_rate_dps: float, sim_config: Any = None, start_t: float = 0.0, orientation: str | None = None,
                   link: str = "tcp", on_retry: Callable[[int, Exception], None] | None = None,
-                  on_event: Callable[[str, str], None] | None = None) -> Lab:
-    """A dry-run lab: sims on a virtual clock, reached through the real drivers."""
+                  on_event: Callable[[str, str], None] | None = None, remount_s: float = 300.0) -> Lab:
+    """A dry-run lab: sims on a virtual clock, reached through the real drivers; its operator takes
+    `remount_s` (the procedure's) for each remount."""
     from labrunner.sims.lab import SimLab
     from labrunner.sims.world import SimLabConfig
 
@@ -232,7 +231,7 @@ def simulated_lab(*, max_rate_dps: float, sim_config: Any = None, start_t: float
             wait(last, 1.0)
 
     clock.add_barrier(barrier)
-    return Lab(chamber=chamber, table=table, imu=imu, operator=SimOperator(sim, clock), clock=clock,
+    return Lab(chamber=chamber, table=table, imu=imu, operator=SimOperator(sim, clock, remount_s), clock=clock,
                config=config, sim=sim)
 
 
