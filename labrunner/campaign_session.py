@@ -284,7 +284,7 @@ def _sim_lab(procedure: Procedure, sim_dict: dict[str, Any], start_t: float, ori
     except (ValueError, TypeError, OSError) as exc:
         raise UserError(f"sim configuration: {exc}") from None
     return simulated_lab(max_rate_dps=procedure.model.safety.max_rate_dps, sim_config=config, start_t=start_t,
-                         orientation=orientation)
+                         orientation=orientation, remount_s=procedure.model.remount_s)
 
 
 def _resumed_sim_lab(procedure: Procedure, store: Store, cid: int, sim_dict: dict[str, Any], clock_t0: float,
@@ -305,7 +305,7 @@ def _resumed_sim_lab(procedure: Procedure, store: Store, cid: int, sim_dict: dic
     air = left.chamber_c if left.chamber_c is not None else lab.sim.config.chamber.ambient_c
     setpoint = left.setpoint_c if left.setpoint_c is not None else air
     lab.sim.restore(orientation=left.mount.orientation, air_c=air, setpoint_c=setpoint,
-                    powered_since=clock_t0 + left.mount.t_s, run=left.mount.run)
+                    powered_since=clock_t0 + left.mount.t_s, run=left.mount.run, imu_c=left.imu_temp_c)
     log.info("resumed dry run: IMU %s since %.0f s (run %d), chamber %.2f C heading for %.2f C",
              left.mount.orientation, left.mount.t_s, left.mount.run, air, setpoint)
     return lab
@@ -356,6 +356,7 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path | StoreAddres
     end-of-run fit's directory must be empty or new unless `force`."""
     from labrunner.lab import lab_config_from_dict, real_lab
     from labrunner.procedure import Procedure, load_procedure
+    from labrunner.run_validation import validate_run  # what `labrunner check` refuses, refused here too
     from labrunner.runner.lease import new_token
     from labrunner.store import Store
 
@@ -374,12 +375,15 @@ def start_run(procedure: str | Path | Procedure, *, db: str | Path | StoreAddres
             from labrunner.fault_plan import random_fault_plan
 
             sim_dict["faults"] = {"random": random_fault_plan(proc, faults, sim_dict.get("seed", 0))}
+        validate_run(proc, sim=sim_dict, sim_source=sim_config if isinstance(sim_config, (str, Path)) else None)
         the_lab = _sim_lab(proc, sim_dict, 0.0, proc.steps()[0].orientation)
         lab_dict = the_lab.config.model_dump()
     else:
         if faults:
             raise UserError("--faults injects faults into the simulated lab: use it with --sim")
-        lab_dict = _lab_config(lab).model_dump()
+        config = _lab_config(lab)
+        validate_run(proc, lab=config, lab_source=lab if isinstance(lab, (str, Path)) else None)
+        lab_dict = config.model_dump()
         the_lab = real_lab(lab_config_from_dict(lab_dict), max_rate_dps=proc.model.safety.max_rate_dps)
     try:
         store = Store.create(db)

@@ -30,6 +30,7 @@ from typing import Any
 from labrunner.clock import VirtualClock
 from labrunner.fault_kinds import INTERLOCK_KINDS as _INTERLOCKS
 from labrunner.fault_kinds import FaultKind, FaultTarget, fault_kind
+from labrunner.yaml_config import ConfigError
 
 _log = logging.getLogger(__name__)  # `log` is the injector's event sink
 
@@ -44,6 +45,7 @@ DURATIONS_S = {  # (low, high) for random plans
     "heater_stuck": (600, 3600), "table_overspeed": (30, 300), "imu_overheat": (300, 1800),
 }
 COUNTS = {"modbus_exception": (1, 6), "modbus_busy": (1, 3), "imu_corrupt": (1, 40), "imu_gap": (1, 25)}
+MAX_RANDOM_FAULTS = 10_000  # a bad night has dozens; a million would only take minutes to plan
 
 
 @dataclass
@@ -109,6 +111,8 @@ def fired_faults(store: Any, campaign_id: int) -> list[dict[str, Any]]:
 
 def random_fault_plan(procedure: Any, n: int, seed: int) -> list[dict[str, Any]]:
     """N faults of random kinds at random moments across the procedure's steps (seeded)."""
+    if not 0 <= n <= MAX_RANDOM_FAULTS:
+        raise ConfigError([f"--faults {n}: the number of random faults must be in 0..{MAX_RANDOM_FAULTS}"])
     rng = random.Random(f"faults-{seed}-{n}")
     last = max(len(procedure.steps()) - 2, 0)
     plan = []

@@ -65,7 +65,7 @@ def sim_config_dict(source: str | Path | dict[str, Any] | None) -> dict[str, Any
             return {}
         if not isinstance(data, dict):
             raise ConfigError([f"{name}:1: a sim configuration must be a mapping"])
-    problems = _problems(data, positions, name)
+    problems = sim_config_problems(data, positions, name)
     if problems:
         raise ConfigError(problems)
     try:
@@ -80,7 +80,7 @@ def sim_config_dict(source: str | Path | dict[str, Any] | None) -> dict[str, Any
     return data
 
 
-def _problems(data: dict[str, Any], positions: dict[tuple[Any, ...], int], name: str) -> list[str]:
+def sim_config_problems(data: dict[str, Any], positions: dict[tuple[Any, ...], int], name: str) -> list[str]:
     """Everything wrong with a sim configuration's keys, types and numbers, one located line each."""
     import dataclasses
 

@@ -46,6 +46,7 @@ ROOMS: dict[str, str] = {
     "labrunner.campaign_session": "composition",
     "labrunner.campaign_abort": "composition",
     "labrunner.sim_config": "composition",
+    "labrunner.run_validation": "composition",  # what a run refuses at its start; check and run call it
     "labrunner.commands": "command",
     "labrunner.cli": "command",
     "labrunner.__main__": "command",

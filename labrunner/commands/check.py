@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labrunner import api
 from labrunner.errors import UserError
 from labrunner.store_address import StoreAddress, store_arg
+
+if TYPE_CHECKING:
+    from labrunner.procedure import Procedure
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,12 +26,16 @@ examples:
   labrunner check quick                                     # the shipped quick procedure's plan
   labrunner check procedures/paper_campaign.yaml --lab lab.yaml
   labrunner check --sim-config sim.yaml --csv quick.csv
+  labrunner check quick --sim                               # also what `run --sim` refuses at its start
   labrunner check --db quick.db                             # the store: pages, JSON and sample blobs""")
     p.add_argument("procedure", type=Path, nargs="?", metavar="PROCEDURE",
                    help="procedure YAML, or the name of a shipped one (quick, paper_campaign)")
     p.add_argument("--lab", type=Path, metavar="LAB.yaml", help="lab configuration naming the instruments")
     p.add_argument("--sim-config", type=Path, metavar="SIM.yaml",
                    help="sim configuration (seed, plants, IMU model, faults)")
+    p.add_argument("--sim", action="store_true",
+                   help="check PROCEDURE as `labrunner run --sim` would start it (the default simulated lab, or "
+                        "--sim-config's)")
     p.add_argument("--csv", type=Path, metavar="FILE", help="campaign CSV, as `labrunner export` writes it")
     p.add_argument("--db", type=store_arg, metavar="DB",
                    help="labrunner store (a SQLite file or a PostgreSQL URL): on SQLite its full integrity check; "
@@ -39,6 +47,8 @@ examples:
 def cmd_check(args: argparse.Namespace) -> int:
     if not (args.procedure or args.lab or args.sim_config or args.csv or args.db):
         raise UserError("nothing to check: give a procedure, --lab, --sim-config, --csv or --db")
+    if args.sim and not args.procedure:
+        raise UserError("--sim checks a procedure as `run --sim` would start it: give the procedure")
     if args.procedure:
         p = api.load_procedure(args.procedure)
         steps = p.steps()
@@ -61,6 +71,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         sim = api.load_sim_config(args.sim_config)
         print(f"{args.sim_config}: sim configuration is valid (seed {sim.seed}, "
               f"IMU effects: {', '.join(sim.imu_model.effects) or 'none'})")
+    if args.procedure and (args.lab or args.sim_config or args.sim):
+        _check_run(p, args)
     if args.csv:
         f = api.read_campaign_csv(args.csv)
         print(f"{args.csv}: campaign CSV is valid: {len(f):,} rows, {f.run.nunique()} run(s), orientations "
@@ -70,6 +82,20 @@ def cmd_check(args: argparse.Namespace) -> int:
     if args.db:
         return _check_store(args.db)
     return 0
+
+
+def _check_run(procedure: Procedure, args: argparse.Namespace) -> None:
+    """What `run` would refuse at its start, through the same function `run` calls."""
+    from labrunner.run_validation import validate_run
+    from labrunner.sim_config import sim_config_dict
+
+    if args.lab:
+        validate_run(procedure, lab=api.load_lab_config(args.lab), lab_source=args.lab)
+        print(f"{args.procedure}: runs on {args.lab}, as far as can be known without the instruments")
+    if args.sim or args.sim_config:
+        validate_run(procedure, sim=sim_config_dict(args.sim_config), sim_source=args.sim_config)
+        print(f"{args.procedure}: `labrunner run --sim` would start it"
+              + (f" with {args.sim_config}" if args.sim_config else ""))
 
 
 def _check_store(db: StoreAddress) -> int:
