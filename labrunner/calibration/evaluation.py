@@ -11,6 +11,15 @@ Splits (each refits every model on its training part only):
 * ``between_rates``: every other table rate magnitude held out (gyro interpolation in
   rate). A network that only snaps readings to the reference values it was trained on
   looks perfect in ``random`` and is found out here.
+* ``time_blocks``: in every run, every third block of at least an hour held out (blocks of
+  max(1 h, run span / 9)), the rest trains: what a log with slow ramps and no soaks allows.
+  Each power-on has its own turn-on bias, which no thermal calibration can know: every
+  model's (and the raw data's) mean error over its run's training rows is removed from its
+  errors on the run's held-out rows, as the power-on calibration or the estimator of the
+  system it flies in would, so the scores compare the thermal part.
+
+Every split also scores PX4's thermal calibration (`px4_reference.py`), fitted on the same
+training rows, as the reference row ``px4``.
 
 Errors are compensated minus true values. Sample statistics follow the paper (mean and
 standard deviation per axis, improvement in %); record statistics (the RMS of each
@@ -27,13 +36,16 @@ from typing import Any
 import numpy as np
 
 from .compensation import compensate
+from .px4_reference import Px4Reference, fit_px4
 from .rbf_model import RbfModel
 from .records import Records, TemperatureSteps, records_from_labels, reference_values
 from .thermal_poly import PolyModel
 from .triads import as_channel_dict
 
-SPLITS: tuple[str, ...] = ("random", "between_temperatures", "beyond_temperatures", "between_rates")
+SPLITS: tuple[str, ...] = ("random", "between_temperatures", "beyond_temperatures", "between_rates", "time_blocks")
 STATIC_RATE_DPS = 0.05
+BLOCK_MIN_S = 3600.0  # held-out time blocks are at least this long
+OFFSET_MAX_ROWS = 200_000  # training rows used for each model's per-run offset (time_blocks)
 
 FitModels = Callable[[Records], Mapping[str, PolyModel | RbfModel]]  # training records -> {model name: model}
 
@@ -134,24 +146,47 @@ def _static_check(values: np.ndarray, ref: np.ndarray, static_rows: np.ndarray, 
                        float(np.sqrt(np.mean(ra ** 2))), float(np.sqrt(np.mean(rg ** 2))), n=int(v.shape[0]))
 
 
-def score(models: Mapping[str, PolyModel | RbfModel], a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
-          result: SplitResult) -> None:
-    """Fill `result` with the errors of raw data and every model on the given rows."""
-    y = a["y"][rows]
-    temp = a["temp"][rows]
+Scored = PolyModel | RbfModel | Px4Reference
+
+
+def _apply(model: Scored | None, a: dict[str, np.ndarray], rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Compensated outputs of the given rows and their extrapolation flags (None: the raw data)."""
+    y, temp = a["y"][rows], a["temp"][rows]
+    if model is None:
+        return y, np.zeros(y.shape[0], dtype=bool)
+    if isinstance(model, Px4Reference):
+        return model.compensate_rows(y, temp, a["orientation"][rows]), np.zeros(y.shape[0], dtype=bool)
+    comp = compensate(model, y, temp)
+    return comp.values, comp.extrapolated
+
+
+def _run_offsets(model: Scored | None, a: dict[str, np.ndarray], rows: np.ndarray) -> dict[int, np.ndarray]:
+    """Mean error (6,) of a model on the training rows of each run: its offset at that power-on."""
+    values, _ = _apply(model, a, rows)
+    err = values - reference_values(a["orientation"][rows], a["rate"][rows])
+    run = a["run"][rows]
+    return {int(r): err[run == r].mean(axis=0) for r in np.unique(run)}
+
+
+def score(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
+          result: SplitResult, offset_rows: np.ndarray | None = None) -> None:
+    """Fill `result` with the errors of raw data and every model on the given rows. With `offset_rows`
+    (training rows), each model's mean error per run over them is removed from its errors in that run."""
     ref = reference_values(a["orientation"][rows], a["rate"][rows])
     lab = labels[rows]
     static = np.abs(a["rate"][rows]) < STATIC_RATE_DPS
     uniq, inv = np.unique(lab, return_inverse=True)
     cnt = np.bincount(inv, minlength=uniq.size).astype(float)
     result.n_test_rows = int(rows.sum()) if rows.dtype == bool else int(rows.size)
-    outputs: dict[str, np.ndarray] = {"raw": y}
-    for name, model in models.items():
-        comp = compensate(model, y, temp)
-        outputs[name] = comp.values
-        result.extrapolated_fraction[name] = float(comp.extrapolated.mean()) if comp.extrapolated.size else 0.0
-    for name, values in outputs.items():
+    run = a["run"][rows]
+    for name, model in {"raw": None, **models}.items():
+        values, extrap = _apply(model, a, rows)
+        if name != "raw":
+            result.extrapolated_fraction[name] = float(extrap.mean()) if extrap.size else 0.0
         err = values - ref
+        if offset_rows is not None:
+            for r, off in _run_offsets(model, a, offset_rows).items():
+                err[run == r] -= off
         result.samples[name] = ErrorStats.of(err)
         rec = np.column_stack([np.bincount(inv, weights=err[:, j], minlength=uniq.size) for j in range(6)])
         result.records[name] = ErrorStats.of(rec / cnt[:, None])
@@ -213,6 +248,16 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
             test_rows = in_record & test_rec[np.maximum(labels, 0)]
             res.train_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[np.setdiff1d(order, held)])]
             res.test_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[held])]
+        elif name == "time_blocks":
+            test_rec, why = time_blocks(records)
+            if test_rec is None:
+                res.skipped = why
+                results.append(res)
+                continue
+            train_rec = records.subset(~test_rec)
+            test_rows = in_record & test_rec[np.maximum(labels, 0)]
+            res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
+            res.description += f" ({why})"
         elif name == "between_rates":
             levels = rate_levels(records)
             if levels.size < 3:
@@ -230,14 +275,41 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
             raise ValueError(f"unknown evaluation split {name!r}; expected one of {', '.join(SPLITS)}")
         res.n_train_records = len(train_rec)
         try:
-            models = fit_models(train_rec)
+            models: dict[str, Scored] = dict(fit_models(train_rec))
         except ValueError as exc:  # the training part alone cannot support a model
             res.skipped = f"training part cannot be fitted: {exc}"
             results.append(res)
             continue
-        score(models, a, _limit_rows(test_rows, max_rows, rng), labels, res)
+        train_rows = in_record & ~test_rows
+        models["px4"] = fit_px4(a, train_rows)
+        offsets = _limit_rows(train_rows, OFFSET_MAX_ROWS, rng) if name == "time_blocks" else None
+        score(models, a, _limit_rows(test_rows, max_rows, rng), labels, res, offsets)
         results.append(res)
     return results
+
+
+def time_blocks(records: Records) -> tuple[np.ndarray | None, str]:
+    """Records held out by the `time_blocks` split (by their middle time) and a description; None and
+    why when no run is long enough for three blocks of BLOCK_MIN_S."""
+    held = np.zeros(len(records), dtype=bool)
+    mid = 0.5 * (records.t_start_s + records.t_end_s)
+    lengths = []
+    longest = 0.0
+    for r in np.unique(records.run):
+        sel = records.run == r
+        t0, t1 = float(records.t_start_s[sel].min()), float(records.t_end_s[sel].max())
+        recorded = float(records.duration_s[sel].sum())
+        longest = max(longest, recorded)
+        if t1 - t0 < 3 * BLOCK_MIN_S or recorded < 3 * BLOCK_MIN_S:
+            continue
+        length = max(BLOCK_MIN_S, (t1 - t0) / 9)
+        lengths.append(length)
+        held[sel] = (np.floor((mid[sel] - t0) / length).astype(np.int64) % 3) == 1
+    if not held.any() or held.all():
+        return None, (f"needs a run with at least {3 * BLOCK_MIN_S / 3600:g} h of records (three blocks of "
+                      f"{BLOCK_MIN_S / 3600:g} h); the longest has {longest / 3600:.2f} h")
+    return held, (f"blocks of {min(lengths) / 3600:.2f} .. {max(lengths) / 3600:.2f} h held out in "
+                  f"{len(lengths)} run(s)")
 
 
 _DESCRIPTIONS = {
@@ -245,4 +317,6 @@ _DESCRIPTIONS = {
     "between_temperatures": "every other interior temperature step held out (interpolation in temperature)",
     "beyond_temperatures": "lowest and highest temperature steps held out (extrapolation in temperature)",
     "between_rates": "every other table rate magnitude held out (interpolation in rate)",
+    "time_blocks": "every third time block of at least 1 h held out in each run, each model's offset per run from "
+                   "the run's training rows removed",
 }

@@ -106,7 +106,14 @@ def fit_models(records: Records, options: FitOptions, progress: Progress | None 
                              f"at most (asked for {options.poly_order})")
         if progress:
             progress(f"thermal polynomial ({triad}, order {order})")
-        joint = fit_joint(records, triad, order, options.t_ref_c)
+        # Every power-on has its own gyro turn-on bias; fitted around, the runs' offsets do not bend the
+        # thermal terms where the runs' temperatures differ. (Not the accelerometer's: with one
+        # orientation per run it would confound bias and scale factor in every campaign.)
+        offsets = triad == "gyro" and len(set(records.run.tolist())) > 1
+        joint = fit_joint(records, triad, order, options.t_ref_c, run_offsets=offsets)
+        if offsets:
+            joint.notes.append(f"gyro: each of the {len(set(records.run.tolist()))} runs (power-ons) fitted with its "
+                               "own offset (turn-on bias); the bias at t_ref is the runs' mean")
         joint.cv_scores = scores if options.poly_method == "joint" else {}
         polys["joint"][triad] = joint
         usable = [c for c in six[triad] if np.isfinite(c.params()).any()]

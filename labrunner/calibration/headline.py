@@ -18,7 +18,8 @@ from .fit import FitResult
 from .triads import TRIAD_SLICE, TRIADS
 
 # Most telling first: interpolation in temperature, then the paper's random split.
-HEADLINE_SPLITS: tuple[str, ...] = ("between_temperatures", "random", "beyond_temperatures", "between_rates")
+HEADLINE_SPLITS: tuple[str, ...] = ("between_temperatures", "random", "beyond_temperatures", "between_rates",
+                                     "time_blocks")
 
 
 @dataclass(frozen=True)

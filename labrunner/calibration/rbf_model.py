@@ -153,6 +153,14 @@ def train_rbf_model(records: Records, variant: str = "paper", base: PolyModel | 
     temp = records.temp_c
     start = compensate_poly(base, y, temp).values if variant == "hybrid" and base is not None else y
     target = records.reference - start
+    runs = np.unique(records.run)
+    if variant == "hybrid" and runs.size > 1:
+        # The polynomial fits the gyro around each run's turn-on bias (fit.py); so does its remainder,
+        # or the network would learn the runs' offsets as a function of the temperatures they covered.
+        w_rec = records.duration_s
+        for r in runs:
+            sel = records.run == r
+            target[sel, 3:] -= np.average(target[sel, 3:], axis=0, weights=w_rec[sel])
     # Train as on the samples themselves: record means weigh by their row counts, and the
     # rows' scatter about each mean enters GCV as the constant it is (see rbf.train_rbf).
     w = records.n_rows

@@ -124,24 +124,48 @@ def _unpack(coef: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
     return coef[:, :m], np.stack([coef[:, m * (1 + j): m * (2 + j)] for j in range(3)], axis=1)
 
 
-def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0) -> TriadPoly:
-    """One-stage fit of b(T), S(T) to all record means of a triad."""
+def run_offset_design(run: np.ndarray) -> np.ndarray:
+    """(N, R-1) effect coding of R runs (power-ons): run j's column is 1 in run j, -1 in the last run. The
+    offsets sum to zero over the runs, so the bias constant is the mean level of the runs."""
+    runs = np.unique(run)
+    return np.column_stack([(run == r).astype(float) - (run == runs[-1]) for r in runs[:-1]]) if runs.size > 1 \
+        else np.zeros((run.size, 0))
+
+
+def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0,
+              run_offsets: bool = False) -> TriadPoly:
+    """One-stage fit of b(T), S(T) to all record means of a triad. With `run_offsets`, each run
+    (power-on) has its own offset, a nuisance the thermal terms are fitted around (a turn-on bias)."""
     sl = TRIAD_SLICE[triad]
     u = records.reference[:, sl]
     temp = records.temp_c
     t_scale = _temp_scale(temp, t_ref_c)
     x = joint_design(temp, u, order, t_ref_c, t_scale)
     target = records.mean[:, sl] - u
+    n_par = x.shape[1]
+    if run_offsets:
+        x = np.hstack([x, run_offset_design(records.run)])
     fit = weighted_lstsq(x, target, records.duration_s, known_var=records.sem[:, sl] ** 2)
+    if run_offsets:  # drop the nuisance parameters: the model is the thermal part
+        fit.coef, fit.identifiable = fit.coef[:n_par], fit.identifiable[:n_par]
+        fit.cov = fit.cov[:, :n_par, :n_par]
+        x = x[:, :n_par]
     ident = fit.identifiable.reshape(4, order + 1)
     raw = np.where(np.isfinite(fit.coef), fit.coef, 0.0)
     combined: list[str] = []
     whole = ~ident.any(axis=1)  # blocks not one of whose temperature coefficients the data determine
     if whole[0] and whole[1:].any() and not (ident.any(axis=1) & ~ident.all(axis=1)).any():
         # Bias and S confounded (no axis seen both up and down): fit what the orientations do determine,
-        # each axis's output in each seen orientation as a function of T, common part in the bias.
-        raw = gauge_lstsq(x, target, records.duration_s, preferred=np.repeat(np.arange(4) == 0, order + 1),
-                          identifiable=fit.identifiable)
+        # each axis's output in each seen orientation as a function of T, common part in the bias. S(T) is
+        # held to first order (scale factor and misalignment change smoothly with temperature), so the
+        # bias's higher powers are common to the orientations: one orientation's data inform the others
+        # where its own temperatures have holes.
+        power = np.tile(np.arange(order + 1), 4)
+        block = np.repeat(np.arange(4), order + 1)
+        keep = (block == 0) | (power <= 1)
+        raw = np.zeros_like(raw)
+        raw[keep] = gauge_lstsq(x[:, keep], target, records.duration_s, preferred=block[keep] == 0,
+                                identifiable=fit.identifiable[keep])
         combined.append(_combined_sentence(triad, records, order, t_ref_c, whole))
     # Back from the scaled variable to (T - t_ref)^k.
     conv = np.tile(t_scale ** -np.arange(order + 1.0), 4)
@@ -177,7 +201,8 @@ def _combined_sentence(triad: str, records: Records, order: int, t_ref_c: float,
     runs = len(set(records.run.tolist()))
     return (f"{triad}: {what} fitted in combination, as each axis's output in each orientation seen ({seen}) as a "
             f"polynomial of order {order} in (T - {t_ref_c:g} C): the bias is the part common to the orientations, "
-            "S(T) only their differences. Valid for compensating the IMU in (or near) those orientations, e.g. "
+            "S(T) (at most linear in T) only their differences. Valid for compensating the IMU in (or near) those "
+            "orientations, e.g. "
             f"static or slow data in the mounting it was calibrated in; not a separation of bias from scale factor "
             f"(no axis was seen both up and down)"
             + (f"; each of the {runs} runs (power-ons) keeps its own turn-on bias in its orientation's level"

@@ -45,7 +45,12 @@ def test_fit_options_and_errors(csv_path, tmp_path, capsys):
                "--json", str(tmp_path / "f.json")])
     assert rc == 0
     data = json.loads((tmp_path / "f.json").read_text())
-    assert data["evaluation"] == [] and data["models"]["rbf"]["variant"] == "paper"
+    # the paper's network sees raw outputs: its measured gain departs from the fitted scale, so it is not
+    # exported, and stderr, the JSON and its gains say why
+    assert data["evaluation"] == [] and "rbf" not in data["models"]
+    assert not data["gains"]["rbf_paper"]["passed"] and data["gains"]["polynomial"]["passed"]
+    assert "rbf_paper" in data["not_exported"][0] and "gain departs" in data["not_exported"][0]
+    assert "warning: the RBF network `rbf_paper`" in capsys.readouterr().err
     assert data["models"]["polynomial"]["gyro"]["cv_scores"]
     assert main(["fit", str(tmp_path / "missing.csv")]) == 2
     assert "file not found" in capsys.readouterr().err
