@@ -128,10 +128,11 @@ class SimLab:
         """How the simulated IMU stands on the table now."""
         return self.world.orientation
 
-    def restore(self, *, orientation: str, air_c: float, setpoint_c: float, powered_since: float, run: int) -> None:
+    def restore(self, *, orientation: str, air_c: float, setpoint_c: float, powered_since: float, run: int,
+                imu_c: float | None = None) -> None:
         """A resumed dry run's lab as the last session left it (`SimWorld.restore`)."""
         self.world.restore(orientation=orientation, air_c=air_c, setpoint_c=setpoint_c, powered_since=powered_since,
-                           run=run)
+                           run=run, imu_c=imu_c)
 
     def close(self) -> None:
         log.debug("simulated lab closing")

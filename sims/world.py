@@ -201,14 +201,18 @@ class SimWorld:
             self.run += 1
             self.t_on = float(t)
 
-    def restore(self, *, orientation: str, air_c: float, setpoint_c: float, powered_since: float, run: int) -> None:
+    def restore(self, *, orientation: str, air_c: float, setpoint_c: float, powered_since: float, run: int,
+                imu_c: float | None = None) -> None:
         """Start as a lab left running (a resumed dry run): the IMU mounted `orientation` and powered since
-        `powered_since` in run `run`, the chamber air at `air_c` (the IMU case with it) heading for `setpoint_c`."""
+        `powered_since` in run `run`, the chamber air at `air_c` heading for `setpoint_c`, the IMU's sensor
+        reading `imu_c` (its case that less the self-heating built since power-on; None: the case at `air_c`)."""
         up_vector(orientation)
         with self.lock:
             self.chamber.air_c = float(air_c)
             self.chamber.setpoint_c = float(setpoint_c)
-            self.case_c = float(air_c)
+            since_on = max(self.chamber.t - float(powered_since), 0.0)
+            heat = self.thermal.self_heat_c * (1.0 - math.exp(-since_on / self.thermal.self_heat_tau_s))
+            self.case_c = float(air_c) if imu_c is None or not math.isfinite(imu_c) else float(imu_c) - heat
             self._hist[0] = (self.chamber.t, self.case_c, self.chamber.air_c)
             self._n = 1
             self.orientation = orientation

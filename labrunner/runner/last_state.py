@@ -35,6 +35,7 @@ class LastMount:
 class LeftState:
     mount: LastMount | None  # None: never mounted
     chamber_c: float | None  # the latest stored chamber reading
+    imu_temp_c: float | None  # the latest stored IMU temperature
     setpoint_c: float | None  # the latest setpoint the sequencer gave (None: none yet, the chamber idles)
 
 
@@ -77,21 +78,27 @@ def last_setpoint(store: Store, campaign_id: int, remount_c: float) -> float | N
     return remount_c
 
 
-def last_chamber_reading(store: Store, campaign_id: int) -> float | None:
-    """The chamber reading stored last (with a record or a monitor stretch)."""
+def last_readings(store: Store, campaign_id: int) -> tuple[float | None, float | None]:
+    """The chamber reading and the IMU temperature stored last (with a record or a monitor stretch)."""
     sb = sample_blocks.c
-    q = select(sb.chamber).where(sb.campaign_id == campaign_id).order_by(sb.t0_s.desc(), sb.id.desc()).limit(1)
+    q = (select(sb.chamber, sb.encoding, sb.temp_lsb, sb.temp_c).where(sb.campaign_id == campaign_id)
+         .order_by(sb.t0_s.desc(), sb.id.desc()).limit(1))
     with store.reading() as conn:
         row = conn.execute(q).first()
     if row is None:
-        return None
+        return None, None
     pairs = np.frombuffer(row.chamber, dtype="<f8").reshape(-1, 2)
-    return float(pairs[np.argmax(pairs[:, 0]), 1]) if pairs.size else None
+    chamber = float(pairs[np.argmax(pairs[:, 0]), 1]) if pairs.size else None
+    temps = (np.frombuffer(row.temp_c, dtype="<i2") * float(row.temp_lsb) if row.encoding == "i16"
+             else np.frombuffer(row.temp_c, dtype="<f4").astype(float))
+    finite = temps[np.isfinite(temps)]
+    return chamber, float(finite[-1]) if finite.size else None
 
 
 def left_state(store: Store, campaign_id: int, remount_c: float) -> LeftState:
-    return LeftState(mount=last_mount(store, campaign_id), chamber_c=last_chamber_reading(store, campaign_id),
+    chamber, imu = last_readings(store, campaign_id)
+    return LeftState(mount=last_mount(store, campaign_id), chamber_c=chamber, imu_temp_c=imu,
                      setpoint_c=last_setpoint(store, campaign_id, remount_c))
 
 
-__all__ = ["LastMount", "LeftState", "last_chamber_reading", "last_mount", "last_setpoint", "left_state"]
+__all__ = ["LastMount", "LeftState", "last_mount", "last_readings", "last_setpoint", "left_state"]

@@ -117,8 +117,8 @@ def in_place(verdict: MountVerdict | None, chamber_c: float, setpoint_c: float, 
     if not math.isfinite(away) or away > tolerance_c:
         return InPlace(False, f"chamber {chamber_c:.2f} C is {away:.2f} C from the step's {setpoint_c:g} C "
                               f"(resume.chamber_tolerance_c {tolerance_c:g} C)")
-    return InPlace(True, f"IMU {verdict.describe()}; chamber {chamber_c:.2f} C within {tolerance_c:g} C of "
-                         f"{setpoint_c:g} C")
+    return InPlace(True, f"IMU {verdict.measured_words()}, as planned ({verdict.planned}); chamber "
+                         f"{chamber_c:.2f} C within {tolerance_c:g} C of {setpoint_c:g} C")
 
 
 __all__ = ["InPlace", "MountVerdict", "axis_words", "in_place", "judge", "read_accel"]
