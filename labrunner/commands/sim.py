@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
 import signal
+import socket
 import sys
 import threading
 import time
@@ -33,10 +35,11 @@ examples:
                     "or pty rate table and IMU) so a lab configuration can be rehearsed from another process. "
                     "Prints the ports and a `ready` JSON line; runs until Ctrl-C, SIGTERM or --duration.",
         epilog=rehearsal)
-    serve.add_argument("--speed", type=float, default=1.0, metavar="N",
+    serve.add_argument("--speed", type=_speed, default=1.0, metavar="N",
                        help="simulated time runs N times faster than wall time")
     serve.add_argument("--host", default="127.0.0.1", metavar="HOST",
-                       help="address to listen on")
+                       help="address to listen on (beyond loopback the simulated lab is reachable from the network: "
+                            "a warning says so)")
     serve.add_argument("--chamber-port", type=port, default=0, metavar="PORT", help="Modbus port (0: any free port)")
     serve.add_argument("--table-port", type=port, default=0, metavar="PORT",
                        help="rate table's TCP port with --link tcp (0: any free port)")
@@ -59,11 +62,45 @@ examples:
     sim.set_defaults(func=lambda args: (sim.print_help(), 2)[1])
 
 
+def _speed(text: str) -> float:
+    """--speed: the lab configuration's clock.speed range (a tiny or infinite speed would hang the sims)."""
+    from labrunner.lab import RANGES
+    from labrunner.yaml_config import Range
+
+    allowed: Range = RANGES["clock.speed"]
+    try:
+        value: object = float(text)
+    except ValueError:
+        value = text
+    problem = allowed.problem(value)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return float(text)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` is reachable only from this machine (127.0.0.0/8, ::1, a name resolving only to them);
+    0.0.0.0 and :: are every interface."""
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        pass
+    try:
+        addresses = {info[4][0] for info in socket.getaddrinfo(host, None)}
+    except (OSError, UnicodeError):
+        return False  # the bind will say what is wrong with it
+    return bool(addresses) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in addresses)
+
+
 def serve_command(args: argparse.Namespace) -> int:
     import yaml
 
     if args.lab_config:  # before the servers start: a refusal leaves nothing running
         check_output(args.lab_config, inputs=[args.config], force=args.force, option="--lab-config")
+    if not is_loopback(args.host):
+        print(f"labrunner sim serve: warning: listening on {args.host}, not loopback: the simulated lab is reachable "
+              "from the network (anyone there can drive the simulated chamber, table and IMU)", file=sys.stderr,
+              flush=True)
     lab = api.serve_sim(config=args.config, speed=args.speed, host=args.host, link=args.link,
                         chamber_transport=args.chamber_transport, profile=args.profile,
                         ports=(args.chamber_port, args.table_port, args.imu_port))
