@@ -465,7 +465,12 @@ class CampaignRunner:
         check = self.p.mount_check
         if not check.enabled:
             return None
-        accel = read_accel(self.lab.imu, self._wait, check.read_s, self._grace(check.read_s))
+        imu = self.lab.imu
+        accel = read_accel(imu, self._wait, check.read_s, self._grace(check.read_s))
+        if not len(accel):
+            # Silence is the IMU's (or its link's) failure, not the mount's: the fault policy decides.
+            raise InstrumentError(imu.name, imu.address, f"no IMU frames in {check.read_s:g} s for the mount check "
+                                  f"of {planned} (is it powered and connected?)")
         return judge(accel, planned, max_angle_deg=check.max_angle_deg,
                      gravity_tolerance_g=check.gravity_tolerance_g)
 

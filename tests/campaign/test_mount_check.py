@@ -247,3 +247,18 @@ def test_dry_run_pauses_after_the_tries(tmp_path):
     assert "mount of y_down not confirmed by gravity in 3 tries (measured: x axis up" in result.reason
     assert ev.message.str.startswith("mount refused").sum() == 3
     assert set(frame.orientation) == {"x_up"} and len(frame) == 2 * 100
+
+
+def test_an_imu_silent_during_the_check_is_an_instrument_fault_not_a_wrong_mount(campaign):
+    lab = FakeLab()
+    lab.imu.lose_frames([0, 50])  # preflight's check gets its frames; the one after the first remount none
+    runner = campaign.runner(lab, auto_resume_s=600.0)
+    assert runner.run() == "done"
+    ev = campaign.events()
+    faults = list(ev[ev.kind == "fault"].message)
+    assert faults == ["imu at fake:imu: no IMU frames in 1 s for the mount check of x_up (is it powered and "
+                      "connected?)"]
+    assert not ev.message.str.startswith("mount refused").any()
+    # The fault policy paused it (a fault pause, resumed in a rehearsal); the resume mounted again.
+    assert runner.auto_resumes == 1
+    assert [o for _, o, _ in lab.operator.remounts] == ["x_up", "x_up", "z_down"]
