@@ -249,13 +249,13 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
             res.train_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[np.setdiff1d(order, held)])]
             res.test_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[held])]
         elif name == "time_blocks":
-            test_rec, why = time_blocks(records)
-            if test_rec is None:
+            blocks, why = time_blocks(records)
+            if blocks is None:
                 res.skipped = why
                 results.append(res)
                 continue
-            train_rec = records.subset(~test_rec)
-            test_rows = in_record & test_rec[np.maximum(labels, 0)]
+            train_rec = records.subset(~blocks)
+            test_rows = in_record & blocks[np.maximum(labels, 0)]
             res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
             res.description += f" ({why})"
         elif name == "between_rates":

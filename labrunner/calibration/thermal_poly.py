@@ -153,7 +153,8 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0,
     ident = fit.identifiable.reshape(4, order + 1)
     raw = np.where(np.isfinite(fit.coef), fit.coef, 0.0)
     combined: list[str] = []
-    whole = ~ident.any(axis=1)  # blocks not one of whose temperature coefficients the data determine
+    # Blocks not one of whose temperature coefficients the data determine.
+    whole: np.ndarray = np.asarray(~ident.any(axis=1))
     if whole[0] and whole[1:].any() and not (ident.any(axis=1) & ~ident.all(axis=1)).any():
         # Bias and S confounded (no axis seen both up and down): fit what the orientations do determine,
         # each axis's output in each seen orientation as a function of T, common part in the bias. S(T) is

@@ -1,0 +1,54 @@
+"""A fit of a campaign paused after one orientation says so: stderr, summary.md, model JSON and C header."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+import labrunner
+from labrunner.cli import main
+
+TINY = """\
+name: tiny
+temperatures: {list_c: [15, 35]}
+soak: {tolerance_c: 0.5, stable_window_s: 120, max_wait_s: 7200, on_timeout: continue, poll_s: 30}
+orientations: [x_up, x_down, y_up, y_down, z_up, z_down]
+remount_s: 60
+rates: {list_dps: [-50, 0, 50]}
+settle_s: 1
+record_s: 4
+record_poll_s: 2
+fit: {run: false}
+"""
+
+
+@pytest.fixture(scope="module")
+def paused(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("paused")
+    (d / "tiny.yaml").write_text(TINY)
+    with labrunner.start_run(d / "tiny.yaml", db=d / "p.db") as session:
+        def pause_after_one_orientation(progress: labrunner.Progress) -> None:
+            if progress.steps_done == 6:  # 2 temperatures x 3 rates: x_up recorded, nothing else
+                session.request_pause("test: pause after one orientation")
+
+        assert session.execute(pause_after_one_orientation).state == "paused"
+    return d / "p.db"
+
+
+def test_fit_of_a_paused_campaign_says_it_is_unfinished(paused: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "fit"
+    assert main(["fit", str(paused), "--out", str(out), "--no-store", "--quiet", "--splits", "random"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: unfinished campaign: 6 of 36 planned steps recorded (status paused)" in err
+    assert "Unfinished campaign:" in (out / "summary.md").read_text()
+    header = (out / "imu_calibration.h").read_text()
+    head = header[:header.index("#ifndef")]
+    assert "6 of 36 planned steps recorded" in head and "WARNING: unfinished campaign" in head
+    assert "not fitted: accel:" in head or "fitted in combination: accel:" in head
+    for name in ("polynomial.json", "rbf.json"):
+        if (out / name).exists():
+            prov = json.loads((out / name).read_text())["provenance"]
+            assert prov["steps_recorded"] == 6 and prov["steps_planned"] == 36
+            assert prov["unfinished"].startswith("unfinished campaign") and prov["not_fitted"]
