@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "labrunner.commands.sim",  # sim serve
     "labrunner.commands.check",  # check
     "labrunner.calibration.command",  # fit
+    "labrunner.commands.compensate",  # compensate
     "labrunner.discrepancy.command",  # diagnose
     "labrunner.commands.report",  # report
 )

@@ -136,7 +136,8 @@ def gains_table(result: FitResult) -> str:
 def gain_table(result: FitResult) -> str:
     """Per split that ran and per triad: RMS over x, y, z of raw, polynomial and exported model, with gains."""
     h = headline(result)
-    header = ["split", "triad", "raw", "polynomial", h.exported, "gain over raw (%)", "gain over polynomial (%)"]
+    header = ["split", "triad", "raw", "polynomial", h.exported, "px4", "gain over raw (%)",
+              "gain over polynomial (%)", "gain over px4 (%)"]
     rows = []
     for split in result.evaluation:
         if split.skipped or "raw" not in split.samples:
@@ -145,8 +146,9 @@ def gain_table(result: FitResult) -> str:
             raw = triad_rms(split, "raw", triad)
             poly = triad_rms(split, "polynomial", triad)
             exp = triad_rms(split, h.exported, triad) if h.exported in split.samples else poly
-            rows.append([split.name, f"{triad} ({UNITS[triad]})", _g(raw, 3), _g(poly, 3), _g(exp, 3),
-                         _pct(gain_pct(exp, raw)), _pct(gain_pct(exp, poly))])
+            px4 = triad_rms(split, "px4", triad) if "px4" in split.samples else float("nan")
+            rows.append([split.name, f"{triad} ({UNITS[triad]})", _g(raw, 3), _g(poly, 3), _g(exp, 3), _g(px4, 3),
+                         _pct(gain_pct(exp, raw)), _pct(gain_pct(exp, poly)), _pct(gain_pct(exp, px4))])
     return _table(header, rows) if rows else "(no evaluation)"
 
 

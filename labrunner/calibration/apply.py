@@ -1,0 +1,109 @@
+"""Compensation of a campaign with a model file: what `labrunner compensate MODEL DATA --csv OUT` does.
+
+The model is a file `labrunner fit --out` wrote (`polynomial.json`, `rbf.json`) or a `fit --json`
+document (its exported model: the network if one was exported, else the polynomial). Every row of the
+data comes out with its compensated outputs (`<column>_comp`) and a flag, `extrapolated`, for rows whose
+temperature (or network input) lies outside what the model was fitted to: flagged, not refused.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from labrunner.campaign_csv import OUTPUT_COLUMNS
+from labrunner.errors import UserError
+
+from .compensation import compensate
+from .export import FORMAT, model_from_dict
+from .rbf_model import RbfModel
+from .thermal_poly import PolyModel
+
+log = logging.getLogger(__name__)
+FIT_FORMAT = "labrunner-calibration/1"  # the `labrunner fit --json` document
+COMP_SUFFIX = "_comp"
+
+
+@dataclass(frozen=True)
+class ModelFile:
+    """A model read from a file, and which one of the file it is."""
+
+    model: PolyModel | RbfModel
+    name: str  # "polynomial", "rbf_hybrid", ...
+    path: str
+
+    @property
+    def temp_range_c(self) -> tuple[float, float]:
+        return self.model.t_min_c, self.model.t_max_c
+
+
+def read_model(path: str | Path) -> ModelFile:
+    """A calibration model from its JSON file; `UserError` naming the file and what is wrong otherwise."""
+    p = Path(path)
+    if not p.exists():
+        raise UserError(f"{p}: model file not found")
+    if p.is_dir():
+        raise UserError(f"{p}: is a directory; expected a model file (polynomial.json or rbf.json of `labrunner fit "
+                        "--out`)")
+    try:
+        data = json.loads(p.read_text())
+    except UnicodeDecodeError:
+        raise UserError(f"{p}: not a text file; expected a labrunner model JSON file") from None
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{p}:{exc.lineno}: not JSON ({exc.msg}); expected a labrunner model JSON file") from None
+    fmt = data.get("format") if isinstance(data, dict) else None
+    if fmt == FIT_FORMAT:  # a fit document: its exported model
+        models = data.get("models") or {}
+        key = "rbf" if isinstance(models.get("rbf"), dict) else "polynomial"
+        d = models.get(key)
+    elif fmt == FORMAT:
+        d = data.get("model")
+    else:
+        raise UserError(f"{p}: format {fmt!r} is not a labrunner calibration model (expected {FORMAT!r}, as in the "
+                        "polynomial.json and rbf.json that `labrunner fit --out` writes)")
+    if not isinstance(d, dict):
+        raise UserError(f"{p}: no model in the file")
+    try:
+        model = model_from_dict(d)
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise UserError(f"{p}: the model is incomplete or malformed ({type(exc).__name__}: {exc})") from None
+    name = "polynomial" if isinstance(model, PolyModel) else f"rbf_{model.variant}"
+    return ModelFile(model=model, name=name, path=str(p))
+
+
+@dataclass(frozen=True)
+class CompensatedData:
+    """The rows with compensated columns and the extrapolation flag, and what the flag says."""
+
+    frame: pd.DataFrame
+    n_rows: int
+    n_extrapolated: int
+    data_temp_range_c: tuple[float, float]
+
+    def summary(self, model: ModelFile) -> str:
+        lo, hi = model.temp_range_c
+        pct = 100.0 * self.n_extrapolated / max(self.n_rows, 1)
+        return (f"{self.n_rows:,} rows compensated with {model.name} ({model.path}); {self.n_extrapolated:,} "
+                f"({pct:.2f} %) flagged as extrapolation (model fitted over {lo:.2f} .. {hi:.2f} C, data "
+                f"{self.data_temp_range_c[0]:.2f} .. {self.data_temp_range_c[1]:.2f} C)")
+
+
+def compensate_data(model: ModelFile, frame: pd.DataFrame) -> CompensatedData:
+    """The same rows with `<output>_comp` columns and `extrapolated` (0/1) added."""
+    y = np.column_stack([frame[c].to_numpy(dtype=float) for c in OUTPUT_COLUMNS])
+    temp = frame["imu_temp_c"].to_numpy(dtype=float)
+    comp = compensate(model.model, y, temp)
+    out = frame.copy()
+    for j, c in enumerate(OUTPUT_COLUMNS):
+        out[c + COMP_SUFFIX] = comp.values[:, j]
+    out["extrapolated"] = comp.extrapolated.astype(np.int8)
+    n_ex = int(comp.extrapolated.sum())
+    if n_ex:
+        log.info("%d rows outside the model's range", n_ex)
+    rng = (float(temp.min()), float(temp.max())) if temp.size else (float("nan"), float("nan"))
+    return CompensatedData(frame=out, n_rows=int(len(out)), n_extrapolated=n_ex, data_temp_range_c=rng)
