@@ -95,6 +95,8 @@ MAX_TEMPERATURES = 500
 MAX_RATES = 2000
 MAX_STEPS = 200_000  # the paper's campaign has 4080
 MAX_FRAMES_PER_RECORD = 5_000_000  # one record is held in memory (~40 bytes a frame)
+MAX_SAMPLES = 1_000_000_000  # ~40 GB of store
+MAX_LAB_TIME_S = 365 * 86400.0  # a year of lab time: a plan beyond it is a typo, not a campaign
 
 
 class _Strict(RangedModel):
@@ -463,7 +465,18 @@ def parse_procedure(text: str, source: str) -> Procedure:
     problems = _cross_checks(model, positions, source)
     if problems:
         raise ConfigError(problems)
-    return Procedure(model=model, text=text, source=source)
+    procedure = Procedure(model=model, text=text, source=source)
+    samples = len(procedure.steps()) * procedure.frames_per_record
+    if samples > MAX_SAMPLES:
+        problems.append(f"{source}:1: the plan records {samples:,} samples; at most {MAX_SAMPLES:,} (the paper's "
+                        "campaign has 12,240,000)")
+    lab_s = procedure.estimated_duration_s()
+    if lab_s > MAX_LAB_TIME_S:
+        problems.append(f"{source}:1: the plan takes about {lab_s / 86400:,.0f} days of lab time; at most "
+                        f"{MAX_LAB_TIME_S / 86400:.0f} (the paper's campaign: about 6)")
+    if problems:
+        raise ConfigError(problems)
+    return procedure
 
 
 def shipped_procedures() -> list[str]:
