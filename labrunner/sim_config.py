@@ -73,9 +73,12 @@ def sim_config_dict(source: str | Path | dict[str, Any] | None) -> dict[str, Any
     except ConfigError:
         raise
     except (ValueError, TypeError, KeyError, AttributeError, OverflowError, OSError) as exc:
-        # What is left is the IMU model's own validation (effects and their parameters).
-        line = positions.get(("imu_model",), 1)
-        raise ConfigError([f"{name}:{line}: {exc}"]) from None
+        # What is left is the simulated world's own validation (the IMU model's effects, the operator,
+        # the IMU format): located at the first key the message names.
+        text = str(exc)
+        named = [k for k in data if isinstance(k, str) and k in text]
+        line = positions.get((min(named, key=text.index),), 1) if named else 1
+        raise ConfigError([f"{name}:{line}: {text}"]) from None
     log.debug("sim configuration from %s: keys %s", name, sorted(data))
     return data
 
