@@ -115,7 +115,7 @@ def sim_config_problems(data: dict[str, Any], positions: dict[tuple[Any, ...], i
         if not isinstance(value, dict):
             problems.append(f"{at(section)}: {section} must be a mapping of keys to values")
             continue
-        klass = config_fields[section].default_factory  # type: ignore[misc]
+        klass = config_fields[section].default_factory
         keys(value, {f.name for f in dataclasses.fields(klass)}, section)  # type: ignore[arg-type]
     operator = data.get("operator")
     if isinstance(operator, dict):  # the simulated operator's wrong mounts (SimOperatorParams checks them)
@@ -134,7 +134,7 @@ def sim_config_problems(data: dict[str, Any], positions: dict[tuple[Any, ...], i
     model = data.get("imu_model")
     if model is not None and not isinstance(model, (str, dict)):
         problems.append(f"{at('imu_model')}: imu_model must be a mapping or the path of a JSON/YAML model")
-    chamber = data.get("chamber") if isinstance(data.get("chamber"), dict) else {}
+    chamber: dict[str, Any] = data["chamber"] if isinstance(data.get("chamber"), dict) else {}
     lo, hi = chamber.get("setpoint_min_c", -70.0), chamber.get("setpoint_max_c", 180.0)
     if isinstance(lo, (int, float)) and isinstance(hi, (int, float)) and not lo < hi:
         problems.append(f"{at('chamber', 'setpoint_min_c')}: chamber.setpoint_min_c must be below setpoint_max_c")

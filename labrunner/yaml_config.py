@@ -153,7 +153,7 @@ def check_ranges(data: Any, ranges: Mapping[str, Range], positions: Mapping[tupl
     return problems
 
 
-def did_you_mean(word: str, known: Any) -> str:
+def did_you_mean(word: Any, known: Any) -> str:
     """' (did you mean 'x'?)' when a known name is close to `word`, else ''."""
     close = difflib.get_close_matches(str(word), [str(k) for k in known], n=1, cutoff=0.6)
     return f" (did you mean '{close[0]}'?)" if close else ""
@@ -175,13 +175,13 @@ class _Loader(yaml.SafeLoader):
         super().__init__(stream)
         self.aliases = 0
 
-    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:  # type: ignore[override]
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
         if self.check_event(yaml.AliasEvent):
             self.aliases += 1
             if self.aliases > MAX_ALIASES:
                 raise _Refused(self.peek_event().start_mark.line + 1,
                                f"more than {MAX_ALIASES} YAML aliases (*name); write the values out")
-        return super().compose_node(parent, index)  # type: ignore[no-any-return]
+        return super().compose_node(parent, index)
 
 
 # YAML 1.1 (PyYAML) reads `1e-9` and `1e3` as text; people mean numbers (YAML 1.2 reads them so).
