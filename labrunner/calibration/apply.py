@@ -21,6 +21,7 @@ from labrunner.errors import UserError
 
 from .compensation import compensate
 from .export import FORMAT, model_from_dict
+from .ins import DEFAULT_WINDOW_S, InsErrors, ins_errors, window_rows
 from .rbf_model import RbfModel
 from .thermal_poly import PolyModel
 
@@ -107,3 +108,18 @@ def compensate_data(model: ModelFile, frame: pd.DataFrame) -> CompensatedData:
         log.info("%d rows outside the model's range", n_ex)
     rng = (float(temp.min()), float(temp.max())) if temp.size else (float("nan"), float("nan"))
     return CompensatedData(frame=out, n_rows=int(len(out)), n_extrapolated=n_ex, data_temp_range_c=rng)
+
+
+def ins_of(model: ModelFile, frame: pd.DataFrame, window_s: float = DEFAULT_WINDOW_S) -> dict[str, InsErrors]:
+    """The paper's INS test on any campaign data: strapdown navigation over windows of `window_s` of
+    contiguous rows of one record (static or on the turning table), raw and compensated."""
+    from .records import frame_arrays, segment_records
+
+    a = frame_arrays(frame)
+    labels = segment_records(frame).row_record
+    win = window_rows(a, labels >= 0, labels, window_s)
+    if win.size == 0:
+        return {}
+    rows = win.ravel()
+    comp = compensate(model.model, a["y"][rows], a["temp"][rows]).values
+    return ins_errors(a, win, {"raw": a["y"][rows], model.name: comp}, window_s)

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from .compensation import compensate
+from .ins import InsErrors, ins_errors, window_rows
 from .px4_reference import Px4Reference, fit_px4
 from .rbf_model import RbfModel
 from .records import Records, TemperatureSteps, records_from_labels, reference_values
@@ -102,6 +103,9 @@ class SplitResult:
     static: dict[str, StaticCheck] = field(default_factory=dict)
     extrapolated_fraction: dict[str, float] = field(default_factory=dict)
     skipped: str | None = None
+    # The paper's INS test on static held-out rows (60 s windows of one record): model -> end-of-window errors
+    ins: dict[str, InsErrors] = field(default_factory=dict)
+    ins_skipped: str | None = None
 
     def improvement(self, model: str, stat: str = "mean") -> np.ndarray:
         """Paper's improvement (%) of a model over raw: 100 (1 - |model| / |raw|)."""
@@ -126,6 +130,7 @@ class SplitResult:
                                 for k in self.samples if k != "raw"},
             "static": {k: v.to_dict() for k, v in self.static.items()},
             "extrapolated_fraction": self.extrapolated_fraction,
+            "ins": {k: v.to_dict() for k, v in self.ins.items()}, "ins_skipped": self.ins_skipped,
         })
         return out
 
@@ -284,8 +289,24 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
         models["px4"] = fit_px4(a, train_rows)
         offsets = _limit_rows(train_rows, OFFSET_MAX_ROWS, rng) if name == "time_blocks" else None
         score(models, a, _limit_rows(test_rows, max_rows, rng), labels, res, offsets)
+        if name == "random":
+            res.ins_skipped = "held-out rows are scattered: no 60 s window of contiguous held-out rows"
+        else:
+            ins_test(models, a, test_rows, labels, res)
         results.append(res)
     return results
+
+
+def ins_test(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
+             result: SplitResult) -> None:
+    """The paper's INS test (Sec. V.C) on the static held-out rows: navigation errors after 60 s windows."""
+    win = window_rows(a, rows & (np.abs(a["rate"]) < STATIC_RATE_DPS), labels)
+    if win.size == 0:
+        result.ins_skipped = "no 60 s window of contiguous static held-out rows (records are shorter)"
+        return
+    rows_w = win.ravel()
+    outputs = {name: _apply(model, a, rows_w)[0] for name, model in {"raw": None, **models}.items()}
+    result.ins = ins_errors(a, win, outputs)
 
 
 def time_blocks(records: Records) -> tuple[np.ndarray | None, str]:

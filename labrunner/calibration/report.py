@@ -10,6 +10,7 @@ import numpy as np
 from .evaluation import SplitResult
 from .fit import FitResult
 from .headline import Headline, gain_pct, headline, triad_rms
+from .ins import InsErrors
 from .triads import AXES, CHANNELS, TRIAD_SLICE, UNITS
 
 TRIAD_TITLES = {"accel": "Accelerometer", "gyro": "Gyroscope"}
@@ -124,6 +125,13 @@ def headline_lines(result: FitResult) -> list[str]:
     return out
 
 
+def ins_table(ins: dict[str, InsErrors]) -> str:
+    """Per model: position and attitude error at the end of the INS windows."""
+    rows = [[name, f"{_g(e.position_m, 3)} ({_g(e.position_m_max, 3)})", _g(e.attitude_deg, 3)]
+            for name, e in ins.items()]
+    return _table(["model", "position error (m)", "attitude error (deg)"], rows)
+
+
 def gains_table(result: FitResult) -> str:
     """Per model: the largest departure of its gain from the fitted scale, where, and whether it may be exported."""
     rows = []
@@ -193,6 +201,12 @@ def summary_markdown(result: FitResult) -> str:
                     "(layout of the paper's Tables 2-3):", "", paper_table(split, triad, rbf_name), ""]
         out += ["RMS error per model, samples / record means:", "", rms_table(split), ""]
         out += ["Static check (records without rotation):", "", static_table(split), ""]
+        if split.ins:
+            n = next(iter(split.ins.values())).n_windows
+            out += [f"INS test (the paper's Sec. V.C): strapdown navigation over {n} windows of 60 s of static "
+                    "held-out rows; errors at the window's end, mean (max):", "", ins_table(split.ins), ""]
+        elif split.ins_skipped:
+            out += [f"INS test: not run: {split.ins_skipped}.", ""]
         ex = {k: v for k, v in split.extrapolated_fraction.items() if v > 0}
         if ex:
             out += ["Fraction of held-out rows flagged as extrapolation: "
