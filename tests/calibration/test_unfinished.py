@@ -18,7 +18,7 @@ orientations: [x_up, x_down, y_up, y_down, z_up, z_down]
 remount_s: 60
 rates: {list_dps: [-50, 0, 50]}
 settle_s: 1
-record_s: 4
+record_s: 10
 record_poll_s: 2
 fit: {run: false}
 """
