@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from labrunner.calibration import FitOptions, compensate  # noqa: E402
 from labrunner.calibration.evaluation import evaluate  # noqa: E402
 from labrunner.calibration.fit import fit_models  # noqa: E402
+from labrunner.calibration.gain import check_models  # noqa: E402
 from labrunner.calibration.records import frame_arrays, segment_records  # noqa: E402
 from labrunner.campaign_csv import OUTPUT_COLUMNS  # noqa: E402
 
@@ -81,6 +82,12 @@ def main() -> int:
     for v, m in models.rbf.items():
         print(f"  rbf {v}: centres per network {[n.n_centres for n in m.networks]}")
     print(f"TOTAL fit time (records + fit, excluding data generation): {total:.1f} s  [target < 60 s]")
+    t = time.perf_counter()
+    gains = check_models(dict(models.compensators()), models.polynomial, records, args.seed)
+    print(f"gain check of {len(gains)} models: {time.perf_counter() - t:.2f} s")
+    for name, g in gains.items():
+        print(f"  {name:22s} max departure from the fitted scale {100 * g.max_departure:9.3g} % "
+              f"({'exportable' if g.passed else 'not exportable'})")
 
     y = np.column_stack([frame[c].to_numpy(dtype=float) for c in OUTPUT_COLUMNS])
     temp = frame["imu_temp_c"].to_numpy(dtype=float)
@@ -95,7 +102,8 @@ def main() -> int:
         t = time.perf_counter()
         ev = evaluate(frame_arrays(frame), records, models.steps,
                       lambda tr: fit_models(tr, opt).compensators(), seed=args.seed)
-        print(f"evaluation (4 splits, refits included): {time.perf_counter() - t:.1f} s")
+        print(f"evaluation ({len(ev)} splits, refits and the px4 reference included): "
+              f"{time.perf_counter() - t:.1f} s")
         for split in ev:
             if split.skipped:
                 continue
