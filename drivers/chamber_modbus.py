@@ -14,6 +14,8 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerType
 from pymodbus.pdu import ModbusPDU
 
+from labrunner.clock import io_timeouts
+
 from .chamber_profiles import ChamberProfile, profile_from
 from .errors import InstrumentError, InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
 from .protocols import Identity
@@ -77,12 +79,16 @@ class ModbusChamber:
 
     # --- connection -----------------------------------------------------------------
 
+    def _link(self) -> str:
+        return f"{self.addr.host}:{self.addr.port}" if self.addr.transport == "tcp" else str(self.addr.serial_port)
+
     def _make_client(self) -> ModbusTcpClient | ModbusSerialClient:
+        timeout = io_timeouts.wall_timeout(self._link(), self.timeout_s)  # a dry run waits in virtual time
         if self.addr.transport == "tcp":
-            return ModbusTcpClient(self.addr.host, port=self.addr.port, timeout=self.timeout_s, retries=0)
+            return ModbusTcpClient(self.addr.host, port=self.addr.port, timeout=timeout, retries=0)
         assert self.addr.serial_port, "an RTU address has a serial port (checked in __init__)"
         return ModbusSerialClient(self.addr.serial_port, framer=FramerType.RTU, baudrate=self.addr.baudrate,
-                                  timeout=self.timeout_s, retries=0)
+                                  timeout=timeout, retries=0)
 
     def _ensure_connected(self) -> ModbusTcpClient | ModbusSerialClient:
         if self._client is None:
@@ -122,14 +128,15 @@ class ModbusChamber:
                   fn: Callable[[ModbusTcpClient | ModbusSerialClient], ModbusPDU]) -> ModbusPDU:
         def attempt() -> ModbusPDU:
             client = self._ensure_connected()
+            deadline = io_timeouts.deadline(self._link(), self.timeout_s)
             try:
                 response = fn(client)
             except ModbusException as exc:
                 client.close()  # a half-read reply leaves the stream out of step: start clean
                 log.debug("%s: %s at register %d: no valid answer (%s); connection closed", self.name, op,
                           register, exc)
-                raise InstrumentTimeout(self.name, self.address, f"{op}: no valid answer ({exc})",
-                                        register=register) from None
+                why = f"no valid answer {deadline.why()}" if deadline.next_wait() == 0 else f"no valid answer ({exc})"
+                raise InstrumentTimeout(self.name, self.address, f"{op}: {why}", register=register) from None
             except OSError as exc:
                 client.close()
                 log.debug("%s: %s at register %d: link error (%s); connection closed", self.name, op, register, exc)

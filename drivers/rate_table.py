@@ -16,10 +16,12 @@ from collections.abc import Callable
 
 import serial
 
+from labrunner.clock import io_timeouts
+
 from .errors import InstrumentError, InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
 from .protocols import Identity, TableStatus
 from .retry import Sleep, with_retry
-from .serial_link import close_quietly, open_serial
+from .serial_link import close_quietly, open_serial, read_reply
 
 _NUMBER = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
 _PVE = re.compile(rf"^PVE ({_NUMBER})$")
@@ -91,8 +93,9 @@ class SerialRateTable:
                 ser.reset_input_buffer()  # a late reply to an earlier, timed-out command is stale
                 out = command.encode("ascii") + b"\r\n"
                 log.debug("%s: tx %r", self.name, out)
+                deadline = io_timeouts.deadline(self.address, self.timeout_s)  # virtual time on a dry run
                 ser.write(out)
-                raw = ser.read_until(b"\r\n")
+                raw = read_reply(ser, b"\r\n", deadline)
                 log.debug("%s: rx %r", self.name, raw)
             except (serial.SerialException, OSError) as exc:
                 log.info("%s: link error on %s (%s); the line is reopened", self.name, self.address, exc)
@@ -100,7 +103,7 @@ class SerialRateTable:
                 raise InstrumentTimeout(self.name, self.address, f"link error: {exc}", command=command) from None
             if not raw.endswith(b"\r\n"):
                 detail = "no reply" if not raw else f"incomplete reply {raw!r}"
-                raise InstrumentTimeout(self.name, self.address, f"{detail} within {self.timeout_s} s", command=command)
+                raise InstrumentTimeout(self.name, self.address, f"{detail} {deadline.why()}", command=command)
             try:
                 line = raw[:-2].decode("ascii").strip()
             except UnicodeDecodeError:

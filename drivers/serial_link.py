@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import serial
 
+from labrunner.clock import Deadline
+
 from .errors import InstrumentTimeout
 
 
@@ -23,3 +25,22 @@ def close_quietly(ser: serial.SerialBase | None) -> None:
             ser.close()
         except Exception:
             pass
+
+
+def read_reply(ser: serial.SerialBase, terminator: bytes, deadline: Deadline) -> bytes:
+    """Read until `terminator` or until the deadline says the wait is over; what arrived (maybe partial).
+
+    The deadline (`labrunner.clock.io_timeouts`) is one timeout on a real line, and short polls on a
+    simulated one, so a dry run's answer is waited for however slow the machine is.
+    """
+    raw = b""
+    while not raw.endswith(terminator):
+        wait = deadline.next_wait()
+        if wait <= 0:
+            break
+        if ser.timeout != wait:
+            ser.timeout = wait
+        # A terminator split across two reads: look for the rest of it.
+        k = next((k for k in range(len(terminator) - 1, 0, -1) if raw.endswith(terminator[:k])), 0)
+        raw += ser.read_until(terminator[k:])
+    return raw

@@ -7,6 +7,8 @@ import threading
 from collections.abc import Coroutine
 from typing import Any, TypeVar
 
+from labrunner.clock import SAFETY_NET_S
+
 T = TypeVar("T")
 
 
@@ -20,8 +22,8 @@ class LoopThread:
         asyncio.set_event_loop(self.loop)
         self.loop.run_forever()
 
-    def run(self, coro: Coroutine[Any, Any, T], timeout: float = 10.0) -> T:
-        """Run a coroutine on the loop and wait for its result."""
+    def run(self, coro: Coroutine[Any, Any, T], timeout: float = SAFETY_NET_S) -> T:
+        """Run a coroutine on the loop and wait for its result (a wall-clock safety net, far beyond any load)."""
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
 
     def stop(self) -> None:

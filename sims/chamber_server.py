@@ -20,7 +20,7 @@ from pymodbus.framer import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from labrunner.clock import Clock
+from labrunner.clock import Clock, io_timeouts
 from labrunner.drivers.chamber_profiles import ChamberProfile, profile_from
 
 from .aio import LoopThread
@@ -132,6 +132,11 @@ class ChamberServer:
         self.requests += 1
         f = self.faults
         if f.silent:
+            if io_timeouts.is_virtual(self.url):
+                # A dry run's client waits in virtual time: told that no answer comes, it times out now.
+                io_timeouts.withhold(self.url)
+                for conn in list(self._server.active_connections.values()):
+                    conn.close()
             while f.silent:  # unanswered until the fault clears (the client has timed out by then)
                 await asyncio.sleep(0.05)
             return ExcCodes.DEVICE_BUSY

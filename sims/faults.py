@@ -124,9 +124,7 @@ class SimFaults:
             # A pty cannot refuse its one client; the fault needs the socket:// links.
             log.warning("sim fault %s: not possible on a %s link; ignored", k.value, type(port).__name__)
             return
-        port.refusing = down
-        if down:
-            port.disconnect()
+        port.refuse(down)  # closes the listener and drops the client, or listens again
 
 
 __all__ = ["SimFaults"]

@@ -12,7 +12,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
-from labrunner.clock import Clock, VirtualClock
+from labrunner.clock import SAFETY_NET_S, Clock, VirtualClock, io_timeouts
 from labrunner.fault_kinds import FaultKind
 
 from .aio import LoopThread
@@ -49,8 +49,14 @@ class SimLab:
         self.loop = LoopThread("sim-modbus")
         self.chamber = ChamberServer(self.world, clock, chamber_profile, transport=chamber_transport, host=host,
                                      port=ports.chamber, loop=self.loop)
-        self.table_port: SimPort = TcpSerialPort(host, ports.table) if link == "tcp" else PtyPort()
-        self.imu_port: SimPort = TcpSerialPort(host, ports.imu) if link == "tcp" else PtyPort()
+        # On a virtual clock a dry run waits for its reader however slow the machine is (the safety net
+        # only catches a hang); served in real time, a line with nobody reading loses its bytes.
+        virtual = isinstance(clock, VirtualClock)
+        send_s = SAFETY_NET_S if virtual else 2.0
+        self.table_port: SimPort = TcpSerialPort(host, ports.table, send_s, virtual) if link == "tcp" else \
+            PtyPort(send_s)
+        self.imu_port: SimPort = TcpSerialPort(host, ports.imu, send_s, virtual, await_close=virtual) \
+            if link == "tcp" else PtyPort(send_s)
         self.table = TableServer(self.world, clock, self.table_port, seed=config.seed)
         self.imu = ImuStreamSim(self.world, clock, self.imu_port, rate_hz=config.imu_rate_hz, seed=config.seed,
                                 codec=IMU_FORMATS[config.imu_format])
@@ -58,6 +64,10 @@ class SimLab:
             clock.add_listener(self.imu.emit_until)
         else:
             self.imu.start_ticker()
+        # The drivers' waits on these links are decided in virtual time (labrunner.clock.io_timeouts).
+        self._virtual_links = [self.chamber.url, self.table_port.url, self.imu_port.url] if virtual else []
+        for url in self._virtual_links:
+            io_timeouts.serve_virtually(url)
         self._faults = SimFaults(self.world, clock, self.chamber, self.table, self.imu, self.table_port,
                                  self.imu_port)
         self._apply_starting_faults(config.faults.get("chamber") or {})
@@ -144,3 +154,6 @@ class SimLab:
         self.table_port.close()
         self.imu_port.close()
         self.loop.stop()
+        for url in self._virtual_links:
+            io_timeouts.release(url)
+        self._virtual_links = []

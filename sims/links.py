@@ -13,6 +13,7 @@ import os
 import select
 import socket
 import threading
+import time
 import tty
 from typing import Protocol
 
@@ -29,41 +30,74 @@ class SimPort(Protocol):
 
 
 class TcpSerialPort:
-    """One serial line served on a TCP port; a new client replaces the previous one."""
+    """One serial line served on a TCP port; a new client replaces the previous one.
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0, send_timeout_s: float = 2.0) -> None:
-        self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._listener.bind((host, port))
-        self._listener.listen(4)
+    A connection the kernel has completed is taken before each write and read, not only by the
+    accept thread, so bytes sent just after a driver connected reach it however the threads are
+    scheduled. With `await_client` (a dry run on a virtual clock) a write finds its reader: after
+    a client was connected once, while the port accepts, a write waits (up to `send_timeout_s` of
+    wall time) for the driver to reconnect instead of losing the bytes, so the frames a reconnect
+    costs do not depend on how fast the machine is. Refusing connections (a link-drop fault) closes
+    the listener: a driver's connect is refused, as by a terminal server that is down.
+    """
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 0, send_timeout_s: float = 2.0,
+                 await_client: bool = False, await_close: bool = False) -> None:
         self.host = host
+        self._lock = threading.Lock()
+        self._connected = threading.Condition(self._lock)
+        self._listener: socket.socket | None = self._listen(port)
         self.port = self._listener.getsockname()[1]
         self.url = f"socket://{host}:{self.port}"
         self.send_timeout_s = send_timeout_s
+        self.await_client = await_client
+        self.await_close = await_close
         self.bytes_written = 0
         self.dropped_bytes = 0
-        self.refusing = False  # fault: connections are accepted and closed at once
+        self._refusing = False
+        self._had_client = False
         self._client: socket.socket | None = None
-        self._lock = threading.Lock()
-        self._connected = threading.Condition(self._lock)
         self._closed = False
         self._accept_thread = threading.Thread(target=self._accept_loop, name=f"sim-port-{self.port}", daemon=True)
         self._accept_thread.start()
 
+    def _listen(self, port: int) -> socket.socket:
+        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        listener.bind((self.host, port))
+        listener.listen(4)
+        listener.setblocking(False)  # two threads may try to accept: neither blocks
+        return listener
+
     def _accept_loop(self) -> None:
         while not self._closed:
-            try:
-                conn, _ = self._listener.accept()
-            except OSError:
-                return
-            if self.refusing:
-                conn.close()
-                log.debug("sim port %s: connection refused (link down)", self.url)
+            listener = self._listener
+            if listener is None:
+                time.sleep(0.02)
                 continue
+            try:
+                ready, _, _ = select.select([listener], [], [], 0.05)
+            except (OSError, ValueError):
+                continue  # closed by refuse(): the next round sees it
+            if ready:
+                self._accept_pending()
+
+    def _accept_pending(self) -> None:
+        """Take every connection the kernel has completed (the newest replaces the client)."""
+        while True:
+            listener = self._listener
+            if listener is None:
+                return
+            try:
+                conn, _ = listener.accept()
+            except (BlockingIOError, OSError):
+                return
+            conn.setblocking(True)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.settimeout(self.send_timeout_s)
             with self._lock:
                 old, self._client = self._client, conn
+                self._had_client = True
                 self._connected.notify_all()
             log.debug("sim port %s: client connected%s", self.url, " (replacing the previous one)" if old else "")
             if old is not None:
@@ -73,13 +107,49 @@ class TcpSerialPort:
     def connected(self) -> bool:
         return self._client is not None
 
+    @property
+    def refusing(self) -> bool:
+        return self._refusing
+
+    @refusing.setter
+    def refusing(self, on: bool) -> None:
+        self.refuse(on)
+
+    def refuse(self, on: bool) -> None:
+        """Fault: stop listening (connects are refused) and drop the client; or listen again on the same port."""
+        if on == self._refusing:
+            return
+        self._refusing = on
+        if on:
+            listener, self._listener = self._listener, None
+            if listener is not None:
+                _close_listener(listener)
+            self.disconnect()
+        elif not self._closed:
+            self._listener = self._listen(self.port)
+        log.debug("sim port %s: %s connections", self.url, "refusing" if on else "accepting")
+
     def wait_connected(self, timeout: float) -> bool:
+        self._accept_pending()
         with self._connected:
             return self._connected.wait_for(lambda: self._client is not None, timeout)
 
+    def _client_for_write(self) -> socket.socket | None:
+        if self._client is None:
+            self._accept_pending()
+        if self._client is None and self.await_client and self._had_client and not self._refusing:
+            end = time.monotonic() + self.send_timeout_s
+            while self._client is None and not self._refusing and not self._closed and time.monotonic() < end:
+                self._accept_pending()
+                with self._connected:
+                    self._connected.wait(0.005)
+            if self._client is None:
+                log.warning("sim port %s: no client came back within %g s", self.url, self.send_timeout_s)
+        return self._client
+
     def write(self, data: bytes) -> int:
         """Send to the connected client; with nobody listening the bytes are lost, as on a real line."""
-        client = self._client
+        client = self._client_for_write()
         if client is None:
             self.dropped_bytes += len(data)
             return 0
@@ -93,6 +163,8 @@ class TcpSerialPort:
         return len(data)
 
     def read(self, timeout: float) -> bytes:
+        if self._client is None:
+            self._accept_pending()
         client = self._client
         if client is None:
             with self._connected:
@@ -120,23 +192,57 @@ class TcpSerialPort:
             pass
 
     def disconnect(self) -> None:
-        """Fault: the line drops (the driver sees its connection close)."""
+        """Fault: the line drops (the driver sees its connection close).
+
+        With `await_close` (a stream a dry run's driver reads all the time) the drop returns once
+        the driver has closed its end, so it notices the loss at this moment of virtual time.
+        """
         client = self._client
         if client is not None:
             log.debug("sim port %s: client disconnected", self.url)
+            if self.await_close:
+                self._until_closed_by_peer(client)
             try:
                 client.shutdown(socket.SHUT_RDWR)
             except OSError:
                 pass
             self._drop(client)
 
+    def _until_closed_by_peer(self, client: socket.socket) -> None:
+        try:
+            client.shutdown(socket.SHUT_WR)  # the driver reads what was sent, then the end of the stream
+        except OSError:
+            return
+        end = time.monotonic() + self.send_timeout_s
+        while time.monotonic() < end:
+            try:
+                ready, _, _ = select.select([client], [], [], 0.05)
+                if ready and not client.recv(65536):
+                    return
+            except (OSError, ValueError):
+                return
+        log.warning("sim port %s: the client did not close its end within %g s", self.url, self.send_timeout_s)
+
     def close(self) -> None:
         self._closed = True
+        self.await_close = False  # closing the lab: nobody waits for the driver any more
         self.disconnect()
-        try:
-            self._listener.close()
-        except OSError:
-            pass
+        listener, self._listener = self._listener, None
+        if listener is not None:
+            _close_listener(listener)
+
+
+def _close_listener(listener: socket.socket) -> None:
+    """Stop listening now: the accept thread's select holds the socket open, and with it the port,
+    until it returns; shutting it down first refuses connects at once and frees the port."""
+    try:
+        listener.shutdown(socket.SHUT_RDWR)
+    except OSError:
+        pass
+    try:
+        listener.close()
+    except OSError:
+        pass
 
 
 class PtyPort:

@@ -22,7 +22,7 @@ import random
 import threading
 from dataclasses import dataclass
 
-from labrunner.clock import Clock
+from labrunner.clock import Clock, io_timeouts
 
 from .links import SimPort
 from .world import SimWorld
@@ -77,6 +77,7 @@ class TableServer:
         self.commands += 1
         f = self.faults
         if f.silent:
+            io_timeouts.withhold(self.port.url)  # a dry run's driver stops waiting now, in virtual time
             return None
         if f.garbage:
             return bytes(self._rng.randrange(256) for _ in range(self._rng.randrange(3, 20))) + b"\r\n"
