@@ -78,6 +78,8 @@ class RbfModel:
         for k, net in enumerate(self.networks):
             x = self.inputs(y, temp_c, k)
             extrap |= net.outside(x, self.input_margin)
+            if net.n_centres == 0:  # nothing left for the network: the output is the base's
+                continue
             if self.variant == "hybrid":  # bias(T) held at its edge value beyond the training temperatures
                 x = np.clip(x, net.input_min, net.input_max)
             out[:, k] += net.predict(x)
