@@ -7,6 +7,7 @@ import pytest
 
 from labrunner.clock import VirtualClock
 from labrunner.sims.world import SimLabConfig, SimWorld
+from tests import pg_server
 
 _LOGGERS = ("labrunner", "pymodbus", "transitions", "matplotlib", "PIL")
 
@@ -20,6 +21,34 @@ def _restore_logging() -> Iterator[None]:
     for name, (handlers, level, propagate) in saved.items():
         lg = logging.getLogger(name)
         lg.handlers[:], lg.level, lg.propagate = handlers, level, propagate
+
+
+@pytest.fixture(scope="session")
+def pg_cluster() -> Iterator[pg_server.PgServer]:
+    """A throwaway PostgreSQL cluster for the session (tests/pg_server.py); skipped without the binaries,
+    unless LABRUNNER_REQUIRE_PG=1 (CI), where their absence fails."""
+    if pg_server.pg_bin() is None:
+        reason = "PostgreSQL 15+ binaries not found (/usr/lib/postgresql/*/bin; apt-get install postgresql)"
+        if pg_server.required():
+            pytest.fail(f"LABRUNNER_REQUIRE_PG=1 but {reason}")
+        pytest.skip(reason)
+    server = pg_server.start_server()
+    yield server
+    server.destroy()
+
+
+@pytest.fixture
+def pg_url(pg_cluster: pg_server.PgServer) -> str:
+    """The URL of a fresh, empty PostgreSQL database."""
+    return pg_cluster.url(pg_cluster.new_database())
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store_db(request: pytest.FixtureRequest, tmp_path) -> str:
+    """Where a test's store goes, on each backend: a SQLite file's path, or a fresh PostgreSQL database's URL."""
+    if request.param == "sqlite":
+        return str(tmp_path / "c.db")
+    return str(request.getfixturevalue("pg_url"))
 
 
 @pytest.fixture

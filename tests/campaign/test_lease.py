@@ -1,7 +1,8 @@
 """The campaign lease (runner/lease.py, Store.take_lease): one writer per campaign.
 
 The race: two `resume`s of one campaign let go at the same instant, 20 times; exactly one records,
-the other is refused naming the winner, and the store holds no step or monitor stretch twice."""
+the other is refused naming the winner, and the store holds no step or monitor stretch twice. On SQLite
+and on PostgreSQL (`store_db`, tests/conftest.py): BEGIN IMMEDIATE there, SELECT ... FOR UPDATE here."""
 
 from __future__ import annotations
 
@@ -14,18 +15,19 @@ import time
 from pathlib import Path
 
 import pytest
+from sqlalchemy import create_engine, text
 
 import labrunner
 from labrunner.runner.lease import STALE_AFTER_S
 from labrunner.store import SCHEMA_VERSION, LeaseLost, Store
+from labrunner.store_address import store_address
 from tests.campaign.conftest import cli
 
 RACER = Path(__file__).with_name("lease_race_cli.py")
 HOST = os.uname().nodename
 
 
-def _paused(tmp_path: Path, tiny: Path) -> Path:
-    db = tmp_path / "race.db"
+def _paused(db: str | Path, tiny: Path) -> str | Path:
     with labrunner.start_run(tiny, db=db) as session:
         session.request_pause("test: paused before the first step")
         assert session.execute().state == "paused"
@@ -45,13 +47,19 @@ def _wait_for(*paths: Path, timeout: float = 60.0) -> None:
         time.sleep(0.01)
 
 
-def _rows(db: Path, sql: str) -> list[tuple]:
-    with sqlite3.connect(db) as conn:
-        return conn.execute(sql).fetchall()
+def _rows(db: str | Path, sql: str, **params: object) -> list[tuple]:
+    """Rows of a statement run on the store's database itself (either backend), committed."""
+    engine = create_engine(store_address(db).url)
+    try:
+        with engine.begin() as conn:
+            result = conn.execute(text(sql), params)
+            return [tuple(r) for r in result] if result.returns_rows else []
+    finally:
+        engine.dispose()
 
 
-def test_two_resumes_at_the_same_instant_never_both_record(tmp_path, tiny):
-    db = _paused(tmp_path, tiny)
+def test_two_resumes_at_the_same_instant_never_both_record(tmp_path, tiny, store_db):
+    db = _paused(store_db, tiny)
     trials = 20
     for trial in range(trials):
         racers = {name: _racer(tmp_path, trial, name, other, "resume", str(db), "--quiet")
@@ -82,15 +90,14 @@ def test_two_resumes_at_the_same_instant_never_both_record(tmp_path, tiny):
     assert sessions == [(trials + 1,)]  # the run, then each winner; the losers wrote nothing, not even a start
 
 
-def _hold(db: Path, *, host: str, pid: int, age_s: float) -> None:
+def _hold(db: str | Path, *, host: str, pid: int, age_s: float) -> None:
     """Make the campaign look held by another process (as that process's heartbeat would leave it)."""
-    with sqlite3.connect(db) as conn:
-        conn.execute("UPDATE campaigns SET status = 'running', lease_token = 'elsewhere', pid = ?, host = ?, "
-                     "lease_wall = ?", (pid, host, time.time() - age_s))
+    _rows(db, "UPDATE campaigns SET status = 'running', lease_token = 'elsewhere', pid = :pid, host = :host, "
+              "lease_wall = :wall", pid=pid, host=host, wall=time.time() - age_s)
 
 
-def test_live_lease_of_another_host_is_refused_even_with_take_over(tmp_path, tiny):
-    db = _paused(tmp_path, tiny)
+def test_live_lease_of_another_host_is_refused_even_with_take_over(tiny, store_db):
+    db = _paused(store_db, tiny)
     _hold(db, host="lab-pc-2", pid=4242, age_s=5.0)
     for extra in ((), ("--take-over",)):
         r = cli("resume", db, "--quiet", *extra, timeout=60)
@@ -106,11 +113,10 @@ def test_live_lease_of_another_host_is_refused_even_with_take_over(tmp_path, tin
     assert "pid 4242 on lab-pc-2" in cli("list", db, check=0).stdout
 
 
-def test_stale_lease_is_taken_only_with_take_over(tmp_path, tiny):
-    db = _paused(tmp_path, tiny)
+def test_stale_lease_is_taken_only_with_take_over(tmp_path, tiny, store_db):
+    db = _paused(store_db, tiny)
     _hold(db, host="lab-pc-2", pid=4242, age_s=STALE_AFTER_S + 30)
-    with sqlite3.connect(db) as conn:  # the holder's last heartbeat, as its process left it
-        conn.execute("UPDATE campaigns SET updated_wall = lease_wall")
+    _rows(db, "UPDATE campaigns SET updated_wall = lease_wall")  # the holder's last heartbeat, as it left it
     assert "pid 4242 on lab-pc-2 (stale: resume --take-over" in cli("list", db, check=0).stdout
     r = cli("resume", db, "--quiet", timeout=60)
     assert r.returncode == 2, r.stderr
@@ -129,8 +135,8 @@ def test_stale_lease_is_taken_only_with_take_over(tmp_path, tiny):
     assert _rows(db, "SELECT count(*) FROM sample_blocks WHERE kind = 'record'") == [(1,)]
 
 
-def test_a_lease_taken_over_stops_the_old_holder_writing(tmp_path, tiny):
-    db = _paused(tmp_path, tiny)
+def test_a_lease_taken_over_stops_the_old_holder_writing(tiny, store_db):
+    db = _paused(store_db, tiny)
     store = Store.open_existing(db)
     try:
         from labrunner.runner.lease import acquire
@@ -149,13 +155,13 @@ def test_a_lease_taken_over_stops_the_old_holder_writing(tmp_path, tiny):
     assert _rows(db, "SELECT count(*) FROM events WHERE message = 'must not be written'") == [(0,)]
 
 
-def test_a_run_holds_its_campaign_and_releases_it_at_the_end(tmp_path, tiny):
-    db = _paused(tmp_path, tiny)
+def test_a_run_holds_its_campaign_and_releases_it_at_the_end(tiny, store_db):
+    db = _paused(store_db, tiny)
     assert _rows(db, "SELECT lease_token, lease_wall FROM campaigns") == [(None, None)]  # released
 
 
-def test_a_schema_1_store_is_migrated_when_opened(tmp_path, tiny):
-    db = _paused(tmp_path, tiny)
+def test_a_schema_1_store_is_migrated_when_opened(tmp_path, tiny):  # SQLite's: no schema-1 store on PostgreSQL
+    db = _paused(tmp_path / "old.db", tiny)
     with sqlite3.connect(db) as conn:  # what labrunner wrote before the lease
         conn.execute("ALTER TABLE campaigns DROP COLUMN lease_token")
         conn.execute("ALTER TABLE campaigns DROP COLUMN lease_wall")

@@ -1,4 +1,4 @@
-"""The store: a record step is all or nothing, never twice, and reads back exactly."""
+"""The store, on SQLite and PostgreSQL: a record step is all or nothing, never twice, and reads back exactly."""
 
 import numpy as np
 import pytest
@@ -26,9 +26,9 @@ def _block(step, n=200, lsb=(0.001, 0.00875, 0.01)):
 
 
 @pytest.fixture
-def store(tmp_path):
+def store(store_db):  # on SQLite and on PostgreSQL (tests/conftest.py)
     p = parse_procedure(TINY, "tiny.yaml")
-    s = Store.create(tmp_path / "c.db")
+    s = Store.create(store_db)
     cid = s.new_campaign(name=p.name, procedure_text=p.text, procedure_path=None, procedure_sha256=p.sha256,
                          lab_config={}, mode="sim", sim_config={}, clock_t0=0.0, plan=p.steps())
     yield s, cid
@@ -61,6 +61,19 @@ def test_a_step_cannot_be_stored_twice(store):
     with pytest.raises(IntegrityError):
         s.commit_record(cid, _block(0), dropped=0, corrupt=0, t_end=4.0, event_message="again")
     assert len(s.samples_frame(cid)) == 200 and s.next_step(cid) == 1
+
+
+def test_only_record_blocks_are_one_per_step(store):
+    # The unique index is partial on both backends: monitor stretches logged around a step are many.
+    s, cid = store
+    s.commit_record(cid, _block(2), dropped=0, corrupt=0, t_end=204.0, event_message="step 2")
+    for k in range(3):
+        monitor = _block(2, n=10)
+        monitor.kind, monitor.lsb, monitor.t0_s = "monitor", None, 300.0 + 20 * k
+        s.save_monitor(cid, monitor)
+    assert len(s.samples_frame(cid, include_monitor=True)) == 200 + 30
+    with pytest.raises(IntegrityError):
+        s.commit_record(cid, _block(2), dropped=0, corrupt=0, t_end=204.0, event_message="again")
 
 
 def test_counts_read_back_exactly_with_interpolated_readings(store):
