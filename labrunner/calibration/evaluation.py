@@ -41,7 +41,7 @@ from .px4_reference import Px4Reference, fit_px4
 from .rbf_model import RbfModel
 from .records import Records, TemperatureSteps, records_from_labels, reference_values
 from .thermal_poly import PolyModel
-from .triads import as_channel_dict
+from .triads import ORIENTATIONS, as_channel_dict
 
 SPLITS: tuple[str, ...] = ("random", "between_temperatures", "beyond_temperatures", "between_rates", "time_blocks")
 STATIC_RATE_DPS = 0.05
@@ -106,6 +106,7 @@ class SplitResult:
     # The paper's INS test on static held-out rows (60 s windows of one record): model -> end-of-window errors
     ins: dict[str, InsErrors] = field(default_factory=dict)
     ins_skipped: str | None = None
+    px4_skipped: str | None = None  # orientations PX4's method is not applied to (their rows pass unchanged)
 
     def improvement(self, model: str, stat: str = "mean") -> np.ndarray:
         """Paper's improvement (%) of a model over raw: 100 (1 - |model| / |raw|)."""
@@ -131,6 +132,7 @@ class SplitResult:
             "static": {k: v.to_dict() for k, v in self.static.items()},
             "extrapolated_fraction": self.extrapolated_fraction,
             "ins": {k: v.to_dict() for k, v in self.ins.items()}, "ins_skipped": self.ins_skipped,
+            "px4_skipped": self.px4_skipped,
         })
         return out
 
@@ -286,7 +288,11 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
             results.append(res)
             continue
         train_rows = in_record & ~test_rows
-        models["px4"] = fit_px4(a, train_rows)
+        px4 = fit_px4(a, train_rows)
+        if px4.fits:
+            models["px4"] = px4
+        if px4.skipped:
+            res.px4_skipped = px4.skipped_sentence(ORIENTATIONS)
         offsets = _limit_rows(train_rows, OFFSET_MAX_ROWS, rng) if name == "time_blocks" else None
         score(models, a, _limit_rows(test_rows, max_rows, rng), labels, res, offsets)
         if name == "random":

@@ -23,6 +23,10 @@ MEDIAN_WINDOW = 31
 N_BINS = 2000
 ORDER = 3
 STATIC_RATE_DPS = 0.05
+# PX4's method assumes a continuous sweep of temperature: its cubic through the bins of a few soaks
+# is not determined between them. An orientation's log counts as a sweep when its static rows occupy
+# at least this fraction of the 1 C bins over their range.
+MIN_SWEEP_OCCUPANCY = 0.5
 
 
 @dataclass
@@ -40,6 +44,17 @@ class Px4Reference:
     """PX4's method, one fit per orientation (index into ORIENTATIONS)."""
 
     fits: dict[int, Px4Fit] = field(default_factory=dict)
+    # orientation -> fraction of its range's 1 C bins its static rows occupy (0: too few rows), when it has no fit
+    skipped: dict[int, float] = field(default_factory=dict)
+
+    def skipped_sentence(self, names: tuple[str, ...]) -> str:
+        """Why orientations have no fit, in one sentence (`names`: orientation labels by index)."""
+        if not self.skipped:
+            return ""
+        occ = [100 * v for v in self.skipped.values()]
+        return (f"no fit for {', '.join(names[o] for o in sorted(self.skipped))}: PX4's method needs a continuous "
+                f"temperature sweep and their static training rows occupy {min(occ):.0f}-{max(occ):.0f} % of the "
+                "1 C bins over their range (soaks, or too few rows)")
 
     def compensate_rows(self, y: np.ndarray, temp_c: np.ndarray, orientation: np.ndarray) -> np.ndarray:
         out = np.array(y, dtype=float, copy=True)
@@ -73,6 +88,12 @@ def fit_px4(a: dict[str, np.ndarray], rows: np.ndarray) -> Px4Reference:
         temp = a["temp"][sel]
         t_min, t_max = float(temp.min()), float(temp.max())
         if sel.size < MEDIAN_WINDOW or t_max - t_min <= 0:
+            ref.skipped[int(o)] = 0.0
+            continue
+        n_bins = max(int(np.ceil(t_max - t_min)), 1)
+        occupied = np.unique(np.minimum(((temp - t_min) // 1.0).astype(np.int64), n_bins - 1)).size / n_bins
+        if occupied < MIN_SWEEP_OCCUPANCY:
+            ref.skipped[int(o)] = float(occupied)
             continue
         t_ref = 0.5 * (t_min + t_max)
         tau = temp - t_ref

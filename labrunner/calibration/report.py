@@ -200,6 +200,9 @@ def summary_markdown(result: FitResult) -> str:
             out += [f"Error of the {TRIAD_TITLES[triad].lower()} ({UNITS[triad]}), samples "
                     "(layout of the paper's Tables 2-3):", "", paper_table(split, triad, rbf_name), ""]
         out += ["RMS error per model, samples / record means:", "", rms_table(split), ""]
+        if split.px4_skipped:
+            scope = "not scored" if "px4" not in split.samples else "its rows pass unchanged for"
+            out += [f"PX4's method ({scope}): {split.px4_skipped}.", ""]
         out += ["Static check (records without rotation):", "", static_table(split), ""]
         if split.ins:
             n = next(iter(split.ins.values())).n_windows

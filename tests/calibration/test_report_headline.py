@@ -62,9 +62,10 @@ def test_headline_names_the_exported_model_and_its_held_out_gain(csv_path, tmp_p
         assert float(m.group(6)) == pytest.approx(100 * (1 - model / poly), abs=0.006)
         # ... and the same as in the table that follows.
         row = glance[("between_temperatures", f"{triad} ({m.group(3)})")]
-        px4 = _triad_rms(split, "px4", triad)  # PX4's method: the reference column, with the gain over it
-        assert row[2:] == [m.group(2), m.group(7), m.group(4), f"{px4:.3g}", m.group(5), m.group(6),
-                           f"{100 * (1 - model / px4):.2f}"]
+        # PX4's method: the reference column, with the gain over it; "-" where it does not apply (soaks)
+        px4 = (f"{_triad_rms(split, 'px4', triad):.3g}", f"{100 * (1 - model / _triad_rms(split, 'px4', triad)):.2f}") \
+            if "px4" in split["samples"] else ("-", "-")
+        assert row[2:] == [m.group(2), m.group(7), m.group(4), px4[0], m.group(5), m.group(6), px4[1]]
     not_fitted = next(ln for ln in head if ln.startswith("**Not fitted:**"))
     for item in data["not_fitted"]:
         assert item in not_fitted
