@@ -448,6 +448,11 @@ def _cross_checks(model: ProcedureModel, positions: dict[tuple[Any, ...], int], 
                         f"safety.chamber_min_c..chamber_max_c ({s.chamber_min_c}..{s.chamber_max_c} C)")
     if not s.chamber_min_c <= model.remount_c <= s.chamber_max_c:
         problems.append(f"{at('remount_c')}: remount_c {model.remount_c} C is outside the safety limits")
+    hottest = max(temps + [model.remount_c])
+    if s.imu_max_temp_c <= hottest:
+        # The IMU follows the chamber (and warms itself): its interlock would trip at the first reading.
+        problems.append(f"{at('safety', 'imu_max_temp_c')}: safety.imu_max_temp_c {s.imu_max_temp_c:g} C is not "
+                        f"above the plan's highest temperature ({hottest:g} C): the IMU interlock would trip")
     rates = model.rates.values()
     fast = [r for r in rates if abs(r) > s.max_rate_dps]
     if fast:

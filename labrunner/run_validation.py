@@ -90,7 +90,7 @@ def _sim_problems(procedure: Procedure, sim: dict[str, Any], name: str, sim_pos:
                   at: Any) -> list[str]:
     from labrunner.sims.chamber_plant import ChamberParams
     from labrunner.sims.table_plant import TableParams
-    from labrunner.sims.world import SimLabConfig
+    from labrunner.sims.world import ImuThermalParams, SimLabConfig
 
     p = procedure.model
     problems: list[str] = []
@@ -108,6 +108,18 @@ def _sim_problems(procedure: Procedure, sim: dict[str, Any], name: str, sim_pos:
         problems.append(f"{at(key)}: {key} {outside[0]:g} C is outside the simulated controller's setpoint "
                         f"range {lo:g}..{hi:g} C ({name}: chamber.setpoint_min_c/setpoint_max_c); preflight "
                         "would refuse it")
+    ambient = float(chamber["ambient_c"])
+    s = p.safety
+    if not s.chamber_min_c <= ambient <= s.chamber_max_c:
+        problems.append(f"{at('safety')}: the simulated chamber starts at {ambient:g} C ({name}: chamber.ambient_c), "
+                        f"outside safety.chamber_min_c..chamber_max_c ({s.chamber_min_c:g}..{s.chamber_max_c:g} C): "
+                        "the chamber interlock would trip at the first reading")
+    thermal = {**vars(ImuThermalParams()), **(sim.get("imu_thermal") or {})}
+    warmest = max(temps + [ambient]) + float(thermal["self_heat_c"])
+    if s.imu_max_temp_c <= warmest:
+        problems.append(f"{at('safety', 'imu_max_temp_c')}: safety.imu_max_temp_c {s.imu_max_temp_c:g} C: the "
+                        f"simulated IMU reaches {warmest:g} C (the plan's warmest temperature plus its self-heating, "
+                        f"{name}: imu_thermal.self_heat_c); the IMU interlock would trip")
     table = {**vars(TableParams()), **(sim.get("table") or {})}
     fastest = max(abs(r) for r in p.rates.values())
     if fastest > float(table["max_rate_dps"]):

@@ -23,7 +23,8 @@ log = logging.getLogger(__name__)
 # hang a dry run; a fault at a negative time or beyond a few years would never fire.
 DURATION_S = Range(0.0, 1e7, "s")
 TAU_S = Range(1.0, 1e6, "s")
-FAULT_RANGES = {"at_s": Range(0.0, 1e8, "s"), "at_step": Range(0, 10**6, integer=True), "after_s": DURATION_S,
+FAULT_RANGES = {"at_s": Range(0.0, 1e8, "s", nullable=True), "at_step": Range(0, 10**6, integer=True, nullable=True),
+                "after_s": DURATION_S,
                 "duration_s": DURATION_S, "count": Range(0, 10**6, integer=True)}
 RANGES: dict[str, Range] = {
     "seed": Range(0, 2**32 - 1, integer=True),
@@ -40,6 +41,7 @@ RANGES: dict[str, Range] = {
     "chamber.setpoint_min_c": Range(-200.0, 300.0, "C"),
     "chamber.setpoint_max_c": Range(-200.0, 300.0, "C"),
     "chamber.step_s": Range(0.05, 60.0, "s"),
+    "chamber.controller_decimals": Range(0, 2, integer=True),  # the served F4's register 606
     "table.max_rate_dps": Range(0.01, 10000.0, "deg/s"),
     "table.accel_dps2": Range(0.01, 1e5, "deg/s^2"),
     "table.rate_accuracy": Range(0.0, 0.1),
@@ -135,6 +137,9 @@ def sim_config_problems(data: dict[str, Any], positions: dict[tuple[Any, ...], i
     if model is not None and not isinstance(model, (str, dict)):
         problems.append(f"{at('imu_model')}: imu_model must be a mapping or the path of a JSON/YAML model")
     chamber: dict[str, Any] = data["chamber"] if isinstance(data.get("chamber"), dict) else {}
+    if chamber.get("controller_units", "C") not in ("C", "F"):
+        problems.append(f"{at('chamber', 'controller_units')}: chamber.controller_units must be C or F, got "
+                        f"{chamber['controller_units']!r}")
     lo, hi = chamber.get("setpoint_min_c", -70.0), chamber.get("setpoint_max_c", 180.0)
     if isinstance(lo, (int, float)) and isinstance(hi, (int, float)) and not lo < hi:
         problems.append(f"{at('chamber', 'setpoint_min_c')}: chamber.setpoint_min_c must be below setpoint_max_c")

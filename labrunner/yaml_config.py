@@ -61,12 +61,14 @@ def show_number(value: Any) -> str:
 
 @dataclass(frozen=True)
 class Range:
-    """The values a number may take: finite, within lo..hi (inclusive), whole if `integer`."""
+    """The values a number may take: finite, within lo..hi (inclusive), whole if `integer`; null only if
+    `nullable` (in plain mappings; a pydantic schema says so in its field's type)."""
 
     lo: float
     hi: float
     unit: str = ""
     integer: bool = False
+    nullable: bool = False
 
     def describe(self) -> str:
         def num(v: float) -> str:
@@ -145,7 +147,7 @@ def check_ranges(data: Any, ranges: Mapping[str, Range], positions: Mapping[tupl
     problems = []
     for dotted, r in ranges.items():
         for path, value in _walk(data, dotted.split("."), ()):
-            if value is None:
+            if value is None and r.nullable:
                 continue
             problem = r.problem(value)
             if problem:
