@@ -111,3 +111,21 @@ def test_exported_model_no_worse_than_px4_on_held_out_hours(log):
     ours, px4 = split.samples[exported].rms, split.samples["px4"].rms
     assert np.all(ours <= px4), (ours, px4)
     assert np.all(px4 < split.samples["raw"].rms)  # the reference itself works on these data
+
+
+def test_fit_command_on_a_field_log_csv(tmp_path, capsys):
+    """The user's path: the log as a CSV file (no chamber column values), `labrunner fit --out`."""
+    from field_logs import write_field_log
+
+    from labrunner.cli import main
+
+    csv = tmp_path / "log.csv"
+    write_field_log(str(csv), seed=1, hours_per_run=8.0)
+    out = tmp_path / "fit"
+    assert main(["fit", str(csv), "--out", str(out), "--splits", "time_blocks", "--quiet"]) == 0
+    summary = capsys.readouterr().out
+    assert "**Fitted in combination:** accel:" in summary and "one temperature" not in summary
+    assert "| px4 " in summary and "Gain of each model" in summary
+    header = (out / "imu_calibration.h").read_text()
+    assert "fitted in combination: accel:" in header and "campaign CSV: steps planned unknown" in header
+    assert (out / "rbf.json").exists() and "lr_rbf_compensate" in header  # the hybrid passes its gain check
