@@ -460,6 +460,10 @@ def start_resume(db: str | Path | StoreAddress, *, campaign: int | None = None,
         else:
             config = _lab_config(lab) if lab is not None else lab_config_from_dict(info.lab_config,
                                                                                   "stored lab configuration")
+            if lab is not None:  # a lab given anew is checked as `run` checks one
+                from labrunner.run_validation import validate_run
+
+                validate_run(procedure, lab=config, lab_source=lab if isinstance(lab, (str, Path)) else None)
             the_lab = real_lab(config, max_rate_dps=procedure.model.safety.max_rate_dps)
         faulty = info.mode == "sim" and has_fault_plan(info.sim_config)
         runner = _runner(procedure, the_lab, store, cid, fit_dir(db, fit_out, cid), info.sim_config,

@@ -281,3 +281,21 @@ def test_the_range_tables_cover_every_number():
     sim_numbers |= {f"faults.{plan}[].{g.name}" for plan in ("schedule", "random") for g in dataclasses.fields(Fault)
                     if g.type != "str"}
     assert sim_numbers <= set(sim_config_module.RANGES), sim_numbers - set(sim_config_module.RANGES)
+
+
+def test_resume_on_a_lab_given_anew_is_checked_as_run_checks_it(tmp_path):
+    """A real-lab campaign resumed with another lab configuration: what run refuses at its start, resume
+    refuses before building an instrument, and leaves the campaign resumable (its lease released)."""
+    from labrunner.campaign_session import start_resume, start_run
+
+    proc, lab, other = tmp_path / "p.yaml", tmp_path / "lab.yaml", tmp_path / "lab100.yaml"
+    proc.write_text(yaml.safe_dump(PROC))
+    text = ("chamber: {host: 127.0.0.1, port: 9}\ntable: {port: 'socket://127.0.0.1:9'}\n"
+            "imu: {port: 'socket://127.0.0.1:9', rate_hz: 50}\n")
+    lab.write_text(text)
+    other.write_text(text.replace("rate_hz: 50", "rate_hz: 100"))
+    db = tmp_path / "c.db"
+    start_run(proc, db=db, lab=lab, fit_out=tmp_path / "fit").close()  # created, never run
+    with pytest.raises(ConfigError, match=rf"sample_rate_hz 50 Hz is not the IMU's rate \({re.escape(str(other))}"):
+        start_resume(db, lab=other)
+    start_resume(db, lab=lab).close()
