@@ -1,4 +1,10 @@
-"""Modbus TCP / RTU client for a thermal chamber controller described by a register-map profile."""
+"""Modbus TCP / RTU client for a thermal chamber controller described by a register-map profile.
+
+The maps and their sources are in `chamber_profiles` (Espec North America's ChamberConnectLibrary,
+`watlowf4.py` and `watlowf4t.py`). Where a map names the controller's decimal-places and units
+registers (the Watlow F4's 606 and 901), they are read at each (re)connect and every temperature
+is converted between the controller's units and °C; the `Chamber` interface is always °C.
+"""
 
 from __future__ import annotations
 
@@ -16,7 +22,7 @@ from pymodbus.pdu import ModbusPDU
 
 from labrunner.clock import io_timeouts
 
-from .chamber_profiles import ChamberProfile, profile_from
+from .chamber_profiles import CELSIUS_TENTHS, ChamberProfile, ControllerUnits, profile_from
 from .errors import InstrumentError, InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
 from .protocols import Identity
 from .retry import Sleep, with_retry
@@ -75,6 +81,7 @@ class ModbusChamber:
         self._client: ModbusTcpClient | ModbusSerialClient | None = None
         self._connects = 0  # successful connects: a second one is a reconnect
         self._range: tuple[float, float] | None = None
+        self._units: ControllerUnits | None = None  # read from the controller after each (re)connect
         self._lock = threading.RLock()
 
     # --- connection -----------------------------------------------------------------
@@ -106,6 +113,8 @@ class ModbusChamber:
                 log.debug("%s: cannot connect to %s: %s", self.name, self.address, reason)
                 raise InstrumentTimeout(self.name, self.address, f"cannot connect: {reason}")
             self._connects += 1
+            self._units = None  # someone may have changed the controller's settings meanwhile
+            self._range = None
             log.info("%s: %s %s (profile %s)", self.name, "reconnected to" if self._connects > 1 else "connected to",
                      self.address, self.profile.name)
         return self._client
@@ -176,13 +185,44 @@ class ModbusChamber:
             self._transact(register, f"write {len(words)} registers", lambda c: c.write_registers(
                 register, words, device_id=self.addr.device_id))
 
+    def units(self) -> ControllerUnits:
+        """The controller's decimal places and °F/°C (read once per connection where the map has them)."""
+        with self._lock:
+            if self._units is None:
+                self._units = self._read_units()
+            return self._units
+
+    def _read_units(self) -> ControllerUnits:
+        p = self.profile
+        decimals, fahrenheit = CELSIUS_TENTHS.decimals, False
+        if p.decimals_register is not None:
+            decimals = self.read_words(p.decimals_register, 1)[0]
+            if not 0 <= decimals <= 3:
+                raise InstrumentProtocolError(self.name, self.address, f"decimal places register reads {decimals}, "
+                                              "expected 0..3", register=p.decimals_register)
+        if p.units_register is not None:
+            code = self.read_words(p.units_register, 1)[0]
+            if code not in (0, 1):
+                raise InstrumentProtocolError(self.name, self.address, f"units register reads {code}, expected "
+                                              "0 (F) or 1 (C)", register=p.units_register)
+            fahrenheit = code == 0
+        units = ControllerUnits(decimals=decimals, fahrenheit=fahrenheit)
+        if p.decimals_register is not None or p.units_register is not None:
+            log.info("%s: controller shows %d decimal place(s) in deg %s", self.name, units.decimals, units.symbol)
+        return units
+
     def _read_value(self, register: int, *, output: bool = False) -> float:
-        return self.profile.decode(self.read_words(register, self.profile.words), output=output)
+        units = CELSIUS_TENTHS if output else self.units()
+        return self.profile.decode(self.read_words(register, self.profile.words), output=output, units=units)
 
     # --- the Chamber interface ------------------------------------------------------------
 
     def identity(self) -> Identity:
         extra: dict[str, str] = {"profile": self.profile.name}
+        if self.profile.decimals_register is not None or self.profile.units_register is not None:
+            units = self.units()
+            extra["units"] = units.symbol
+            extra["decimals"] = str(units.decimals)
         if self.profile.model_register is not None:
             code = self.read_words(self.profile.model_register, 1)[0]
             extra["model_code"] = str(code)
@@ -226,15 +266,23 @@ class ModbusChamber:
     def read_setpoint(self) -> float:
         return self._read_value(self.profile.setpoint)
 
+    def current_setpoint(self) -> float:
+        """The working (closed-loop) setpoint where the map has one (F4T 2810), else the setpoint."""
+        register = self.profile.current_setpoint
+        return self._read_value(register) if register is not None else self.read_setpoint()
+
     def set_setpoint(self, value_c: float) -> None:
         lo, hi = self.setpoint_range()
         if not (math.isfinite(value_c) and lo <= value_c <= hi):
             raise LimitError(self.name, self.address, f"setpoint {value_c} C is outside the controller's range "
                              f"{lo}..{hi} C; nothing was written", register=self.profile.setpoint)
-        words = self.profile.encode(value_c)
+        units = self.units()
+        words = self.profile.encode(value_c, units=units)
         self.write_words(self.profile.setpoint, words)
         back = self.read_setpoint()
-        if abs(back - value_c) > (0.051 if self.profile.encoding == "int16_tenths" else 1e-3):
+        # A 16-bit register holds the setpoint to one count (of 10**-decimals, in °F or °C).
+        slack = 0.501 * units.resolution_c() + 1e-9 if self.profile.encoding == "int16_tenths" else 1e-3
+        if abs(back - value_c) > slack:
             raise InstrumentProtocolError(self.name, self.address, f"setpoint written as {value_c} reads back {back}",
                                           register=self.profile.setpoint)
 

@@ -31,6 +31,16 @@ class ChamberParams:
     setpoint_min_c: float = -70.0  # the controller's setpoint range (registers 602/603)
     setpoint_max_c: float = 180.0
     step_s: float = 1.0
+    # The controller's display settings (Watlow F4 registers 901 and 606): temperatures are served
+    # in these units with this many decimals, so a driver must read and convert them.
+    controller_units: str = "C"  # "C" or "F"
+    controller_decimals: int = 1  # 0..2
+
+    def __post_init__(self) -> None:
+        if self.controller_units not in ("C", "F"):
+            raise ValueError(f"chamber.controller_units must be 'C' or 'F', got {self.controller_units!r}")
+        if isinstance(self.controller_decimals, bool) or self.controller_decimals not in (0, 1, 2):
+            raise ValueError(f"chamber.controller_decimals must be 0, 1 or 2, got {self.controller_decimals!r}")
 
 
 class ChamberPlant:

@@ -1,6 +1,8 @@
 """The simulated chamber controller: a real pymodbus server (TCP, or RTU framing over socket://).
 
-Registers follow a `drivers.chamber_profiles.ChamberProfile`. Every request runs the
+Registers follow a `drivers.chamber_profiles.ChamberProfile`, in the controller units the
+chamber's parameters set (`controller_units` °C/°F, `controller_decimals`; served in the
+decimal-places and units registers where the map has them, Watlow F4 606/901). Every request runs the
 action hook, which brings the chamber plant to the clock's current time and puts
 process value, setpoint, outputs and limits into the registers, or applies a
 setpoint write (refusing values outside the controller's range, like the real one).
@@ -21,7 +23,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from labrunner.clock import Clock, io_timeouts
-from labrunner.drivers.chamber_profiles import ChamberProfile, profile_from
+from labrunner.drivers.chamber_profiles import ChamberProfile, ControllerUnits, profile_from
 
 from .aio import LoopThread
 from .world import SimWorld
@@ -61,6 +63,16 @@ class ChamberServer:
         self.host = host
         self.device_id = device_id
         self.faults = ChamberFaults()
+        params = world.chamber.p
+        self.units = ControllerUnits(decimals=params.controller_decimals, fahrenheit=params.controller_units == "F")
+        missing = [what for what, needed, register in (
+            ("units", self.units.fahrenheit, self.profile.units_register),
+            ("decimal places", self.units.decimals != 1 and self.profile.encoding == "int16_tenths",
+             self.profile.decimals_register)) if needed and register is None]
+        if missing:
+            # A controller cannot show what its map cannot tell the driver: refused, not served wrong.
+            raise ValueError(f"chamber sim: profile {self.profile.name!r} has no {' or '.join(missing)} register; "
+                             "serve it with controller_units C and controller_decimals 1")
         self.requests = 0
         self._loop = loop or LoopThread("sim-chamber")
         self._own_loop = loop is None
@@ -97,7 +109,7 @@ class ChamberServer:
     def _put(self, regs: list[int], start: int, register: int | None, value: float, *, output: bool = False) -> None:
         if register is None:
             return
-        words = self.profile.encode(value, output=output)
+        words = self.profile.encode(value, output=output, units=self.units)
         i = register - start
         if 0 <= i and i + len(words) <= len(regs):
             regs[i:i + len(words)] = words
@@ -124,8 +136,11 @@ class ChamberServer:
             self._put(regs, start, p.cool_output, plant.cool_output_pct, output=True)
             self._put(regs, start, p.setpoint_min, plant.p.setpoint_min_c)
             self._put(regs, start, p.setpoint_max, plant.p.setpoint_max_c)
-            if p.model_register is not None and p.model_code is not None:
-                regs[p.model_register - start] = p.model_code & 0xFFFF
+            self._put(regs, start, p.current_setpoint, plant.setpoint_c)  # no ramp program: the setpoint
+            for register, value in ((p.model_register, p.model_code), (p.decimals_register, self.units.decimals),
+                                    (p.units_register, 0 if self.units.fahrenheit else 1)):
+                if register is not None and value is not None and 0 <= register - start < len(regs):
+                    regs[register - start] = value & 0xFFFF
 
     async def _action(self, fc: int, start: int, address: int, count: int, regs: list[int],
                       set_values: list[int] | list[bool] | None) -> ExcCodes | None:
@@ -160,7 +175,7 @@ class ChamberServer:
         p = self.profile
         if address != p.setpoint or len(values) != p.words:
             return ExcCodes.ILLEGAL_ADDRESS  # only the setpoint is writable here
-        value = p.decode(values)
+        value = p.decode(values, units=self.units)
         plant = self.world.chamber
         if not (plant.p.setpoint_min_c <= value <= plant.p.setpoint_max_c):
             return ExcCodes.ILLEGAL_VALUE
