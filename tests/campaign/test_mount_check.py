@@ -262,3 +262,18 @@ def test_an_imu_silent_during_the_check_is_an_instrument_fault_not_a_wrong_mount
     # The fault policy paused it (a fault pause, resumed in a rehearsal); the resume mounted again.
     assert runner.auto_resumes == 1
     assert [o for _, o, _ in lab.operator.remounts] == ["x_up", "x_up", "z_down"]
+
+
+def test_the_command_line_says_why_it_paused_and_resume_mounts_again(tmp_path):
+    from .conftest import cli
+
+    proc_file = tmp_path / "dry.yaml"
+    proc_file.write_text(DRY)
+    sim = tmp_path / "sim.yaml"
+    sim.write_text("operator: {wrong_mounts: 4}\n")  # x_up happens to be right; y_down's three tries skipped
+    db = tmp_path / "cli.db"
+    run = cli("run", proc_file, "--sim", "--sim-config", sim, "--db", db, "--quiet", check=3)
+    assert "reason: mount of y_down not confirmed by gravity in 3 tries (measured: x axis up" in run.stderr
+    # Resumed, the simulated operator (a new session) goes wrong again for its first four remounts: paused again.
+    again = cli("resume", db, "--quiet", check=3)
+    assert "not confirmed by gravity" in again.stderr
