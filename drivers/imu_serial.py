@@ -25,7 +25,7 @@ import serial
 
 from labrunner.clock import io_timeouts
 
-from .errors import InstrumentError, InstrumentProtocolError
+from .errors import InstrumentError, InstrumentProtocolError, InstrumentTimeout
 from .imu_frames import COUNTER_MODULO, LABRUNNER_FRAME, FrameCodec
 from .protocols import ImuRecord, ImuSample
 from .serial_link import close_quietly, open_serial
@@ -74,7 +74,7 @@ class SerialImu:
         self.duplicates = 0
         self.reordered = 0
         self.link_drops = 0
-        self._reopening = False  # the reader is opening the line again (a barrier waits for it)
+        self._reopening = False  # the reader thread is opening the line again
         self._running = False
         self._thread: threading.Thread | None = None
 
@@ -82,10 +82,13 @@ class SerialImu:
 
     def connect(self) -> None:
         with self._cond:
-            if self._ser is None:
+            if self._ser is None and self.link_drops == 0:
                 self._ser = open_serial(self.address, baudrate=self.baudrate, timeout_s=0.0, instrument=self.name)
                 log.info("%s: %s stream open at %s (%g Hz expected)", self.name, self.codec.name, self.address,
                          self.rate_hz)
+            elif self._ser is None and not self._reopen_locked():  # lost before: reopened, and said so
+                raise InstrumentTimeout(self.name, self.address, "the link was lost and the line cannot be opened "
+                                      "again")
             if not self._running:
                 self._running = True
                 self._thread = threading.Thread(target=self._reader, name=f"{self.name}-reader", daemon=True)
@@ -109,12 +112,13 @@ class SerialImu:
 
     @property
     def link_up(self) -> bool:
-        """The line is open, or the reader is opening it again: what is sent now will be read.
+        """The line is open or being opened again (what is sent now will be read).
 
-        A dry run's barrier waits for frames only then; the link events are told under the
-        lock the barrier's wait takes, so they happen at the same moment of virtual time.
+        On a link a simulator serves on a virtual clock (`labrunner.clock.io_timeouts`) the reader
+        thread does not reopen a lost line by itself: the dry run's barrier (`wait_counter16`) and
+        `connect` do, so a reconnect and its event happen at one moment of virtual time.
         """
-        return self._ser is not None or self._reopening
+        return self._ser is not None or self._reopening or (self._running and io_timeouts.is_virtual(self.address))
 
     @property
     def streaming(self) -> bool:
@@ -150,22 +154,31 @@ class SerialImu:
                 log.warning("%s at %s: link lost (%s); reopening", self.name, self.address, exc)
                 self._event("imu_link_lost", f"{self.name} at {self.address}: link lost ({exc})")
 
+    def _reopen_locked(self) -> bool:
+        """Open a lost line again (under the lock); True and the 'restored' event when it opened."""
+        try:
+            fresh = open_serial(self.address, baudrate=self.baudrate, timeout_s=0.0, instrument=self.name)
+        except InstrumentError:
+            return False
+        self._ser = fresh
+        log.info("%s at %s: link restored", self.name, self.address)
+        self._event("imu_link_restored", f"{self.name} at {self.address}: link restored")
+        self._cond.notify_all()
+        return True
+
     def _reader(self) -> None:
         while self._running:
             ser = self._ser
             if ser is None:
-                self._reopening = True
-                try:
-                    fresh = open_serial(self.address, baudrate=self.baudrate, timeout_s=0.0, instrument=self.name)
-                except InstrumentError:
-                    self._reopening = False
-                    time.sleep(self.reopen_s)
+                if io_timeouts.is_virtual(self.address):
+                    time.sleep(0.02)  # a dry run's barrier reopens it, in virtual time
                     continue
+                self._reopening = True
                 with self._cond:
-                    self._ser = fresh
+                    opened = self._ser is not None or self._reopen_locked()
                     self._reopening = False
-                    log.info("%s at %s: link restored", self.name, self.address)
-                    self._event("imu_link_restored", f"{self.name} at {self.address}: link restored")
+                if not opened:
+                    time.sleep(self.reopen_s)
                 continue
             try:
                 # The port may be closed by another thread (a read there failed) between the two
@@ -311,6 +324,8 @@ class SerialImu:
         """Wait until the frame with this 16-bit counter is the last parsed, in arrival order (dry-run barrier)."""
         wait_s = io_timeouts.wall_timeout(self.address, timeout_s)  # a dry run's frames come, however slow
         with self._cond:
+            if self._ser is None and self._running:
+                self._reopen_locked()  # a dry run's lost line: reopened now, or at a later barrier
             self._drain_locked()
             return self._cond.wait_for(lambda: self._last_arrived16 == counter16, wait_s)
 

@@ -53,10 +53,9 @@ class SimLab:
         # only catches a hang); served in real time, a line with nobody reading loses its bytes.
         virtual = isinstance(clock, VirtualClock)
         send_s = SAFETY_NET_S if virtual else 2.0
-        self.table_port: SimPort = TcpSerialPort(host, ports.table, send_s, virtual) if link == "tcp" else \
-            PtyPort(send_s)
-        self.imu_port: SimPort = TcpSerialPort(host, ports.imu, send_s, virtual, await_close=virtual) \
-            if link == "tcp" else PtyPort(send_s)
+        self.table_port: SimPort = TcpSerialPort(host, ports.table, send_s) if link == "tcp" else PtyPort(send_s)
+        self.imu_port: SimPort = TcpSerialPort(host, ports.imu, send_s, await_close=virtual) if link == "tcp" \
+            else PtyPort(send_s)
         self.table = TableServer(self.world, clock, self.table_port, seed=config.seed)
         self.imu = ImuStreamSim(self.world, clock, self.imu_port, rate_hz=config.imu_rate_hz, seed=config.seed,
                                 codec=IMU_FORMATS[config.imu_format])

@@ -34,15 +34,13 @@ class TcpSerialPort:
 
     A connection the kernel has completed is taken before each write and read, not only by the
     accept thread, so bytes sent just after a driver connected reach it however the threads are
-    scheduled. With `await_client` (a dry run on a virtual clock) a write finds its reader: after
-    a client was connected once, while the port accepts, a write waits (up to `send_timeout_s` of
-    wall time) for the driver to reconnect instead of losing the bytes, so the frames a reconnect
-    costs do not depend on how fast the machine is. Refusing connections (a link-drop fault) closes
-    the listener: a driver's connect is refused, as by a terminal server that is down.
+    scheduled. Refusing connections (a link-drop fault) closes the listener: a driver's connect is
+    refused, as by a terminal server that is down. With `await_close` (a stream a dry run's driver
+    reads all the time) a drop waits until the driver has closed its end.
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 0, send_timeout_s: float = 2.0,
-                 await_client: bool = False, await_close: bool = False) -> None:
+                 await_close: bool = False) -> None:
         self.host = host
         self._lock = threading.Lock()
         self._connected = threading.Condition(self._lock)
@@ -50,12 +48,10 @@ class TcpSerialPort:
         self.port = self._listener.getsockname()[1]
         self.url = f"socket://{host}:{self.port}"
         self.send_timeout_s = send_timeout_s
-        self.await_client = await_client
         self.await_close = await_close
         self.bytes_written = 0
         self.dropped_bytes = 0
         self._refusing = False
-        self._had_client = False
         self._client: socket.socket | None = None
         self._closed = False
         self._accept_thread = threading.Thread(target=self._accept_loop, name=f"sim-port-{self.port}", daemon=True)
@@ -97,7 +93,6 @@ class TcpSerialPort:
             conn.settimeout(self.send_timeout_s)
             with self._lock:
                 old, self._client = self._client, conn
-                self._had_client = True
                 self._connected.notify_all()
             log.debug("sim port %s: client connected%s", self.url, " (replacing the previous one)" if old else "")
             if old is not None:
@@ -134,22 +129,11 @@ class TcpSerialPort:
         with self._connected:
             return self._connected.wait_for(lambda: self._client is not None, timeout)
 
-    def _client_for_write(self) -> socket.socket | None:
-        if self._client is None:
-            self._accept_pending()
-        if self._client is None and self.await_client and self._had_client and not self._refusing:
-            end = time.monotonic() + self.send_timeout_s
-            while self._client is None and not self._refusing and not self._closed and time.monotonic() < end:
-                self._accept_pending()
-                with self._connected:
-                    self._connected.wait(0.005)
-            if self._client is None:
-                log.warning("sim port %s: no client came back within %g s", self.url, self.send_timeout_s)
-        return self._client
-
     def write(self, data: bytes) -> int:
         """Send to the connected client; with nobody listening the bytes are lost, as on a real line."""
-        client = self._client_for_write()
+        if self._client is None:
+            self._accept_pending()
+        client = self._client
         if client is None:
             self.dropped_bytes += len(data)
             return 0
