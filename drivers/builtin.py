@@ -19,6 +19,7 @@ from .chamber_profiles import profile_from
 from .imu_serial import SerialImu
 from .rate_table import SerialRateTable
 from .registry import Driver, DriverOptions
+from .table_profiles import language_from
 
 # The lab configuration's ranges (item 7 of issue 13, moved here with the sections they check).
 # Every number of a lab configuration, finite and physical (checked by `labrunner check --lab` with
@@ -131,11 +132,36 @@ class SerialFields(_Strict):
     backoff_s: float = Field(0.2, ge=0)
 
 
-def make_labrunner_table(section: SerialFields, clock: Clock, options: DriverOptions) -> SerialRateTable:
+class SerialTableSection(SerialFields):
+    """`serial_table`: a rate table whose command language is a profile (`drivers/table_profiles.py`):
+    a shipped one by name, or a mapping (`{base: ideal_aerosmith, terminator: "\\r"}`)."""
+
+    language: str | dict[str, Any] = "labrunner"
+
+    @field_validator("language")
+    @classmethod
+    def _known_language(cls, v: str | dict[str, Any]) -> str | dict[str, Any]:
+        language_from(v)  # raises ValueError naming the problem
+        return v
+
+
+def _serial_table(section: SerialFields, clock: Clock, options: DriverOptions, language: Any) -> SerialRateTable:
     s = section
     return SerialRateTable(s.port, max_rate_dps=options.max_rate_dps, baudrate=s.baudrate, name=options.name,
                            timeout_s=s.timeout_s, retries=s.retries, backoff_s=s.backoff_s, sleep=clock.sleep,
-                           on_retry=options.on_retry)
+                           on_retry=options.on_retry, language=language_from(language))
+
+
+def make_serial_table(section: SerialTableSection, clock: Clock, options: DriverOptions) -> SerialRateTable:
+    return _serial_table(section, clock, options, section.language)
+
+
+def make_labrunner_table(section: SerialFields, clock: Clock, options: DriverOptions) -> SerialRateTable:
+    return _serial_table(section, clock, options, "labrunner")
+
+
+def make_ideal_aerosmith(section: SerialFields, clock: Clock, options: DriverOptions) -> SerialRateTable:
+    return _serial_table(section, clock, options, "ideal_aerosmith")
 
 
 class LabrunnerImuSection(_Strict):
@@ -155,6 +181,10 @@ MODBUS_CHAMBER = Driver("chamber", make_modbus_chamber, ModbusChamberSection,
 WATLOW_F4 = Driver("chamber", make_watlow_f4, ModbusFields,
                    "Watlow F4 over Modbus (decimals 606 and units 901 read at connect)")
 WATLOW_F4T = Driver("chamber", make_watlow_f4t, ModbusFields, "Watlow F4T over Modbus (float32 map)")
+SERIAL_TABLE = Driver("table", make_serial_table, SerialTableSection,
+                      "serial rate table, command language from `language` (a profile)")
+IDEAL_AEROSMITH = Driver("table", make_ideal_aerosmith, SerialFields,
+                         "Ideal Aerosmith table language (JOG, STO, SRV, HOM; queries end in '?')")
 LABRUNNER_TABLE = Driver("table", make_labrunner_table, SerialFields,
                          "labrunner's own ASCII table language (IDN LIM JOG STO PVE STA)")
 LABRUNNER_IMU = Driver("imu", make_labrunner_imu, LabrunnerImuSection,

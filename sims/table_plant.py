@@ -19,6 +19,7 @@ class TableParams:
     accel_dps2: float = 100.0
     rate_accuracy: float = 1e-4  # relative bound of |held - commanded| / |commanded|
     encoder_resolution_dps: float = 1e-4
+    language: str = "labrunner"  # the command language the simulated table speaks (drivers/table_profiles.py)
 
 
 class TablePlant:
@@ -33,6 +34,7 @@ class TablePlant:
         self._seg_r1 = np.array([0.0])
         self._seg_t1 = np.array([start_t])
         self.commanded_dps = 0.0
+        self._angle0, self._angle_t0 = 0.0, start_t  # the angle at the last command, for `angle_at`
         self.overspeed = 1.0  # fault injection: the drive holds this multiple of the commanded rate
 
     def _held_rate(self, command: float) -> float:
@@ -44,6 +46,7 @@ class TablePlant:
     def command(self, t: float, rate_dps: float) -> None:
         """Command a new rate at time t (0 stops the table)."""
         r_now = float(self.rate_at(np.array([t]), ripple=False)[0])
+        self._angle0, self._angle_t0 = self.angle_at(t), t
         target = self._held_rate(rate_dps) if rate_dps != 0 else 0.0
         t_end = t + abs(target - r_now) / self.p.accel_dps2
         keep = self._seg_t0 < t
@@ -66,6 +69,17 @@ class TablePlant:
             angle = np.deg2rad(rate) * times
             rate = rate * (1.0 + 0.5 * self.p.rate_accuracy * np.sin(angle))
         return rate
+
+    def angle_at(self, t: float) -> float:
+        """The table's angle (degrees, 0..360) at t >= the last command: the integral of the rate
+        since then (a ramp, then constant), ripple left out."""
+        t0, r0, r1, t1 = self._angle_t0, self._seg_r0[-1], self._seg_r1[-1], self._seg_t1[-1]
+        dt = max(t - t0, 0.0)
+        ramp_s = max(t1 - t0, 0.0)
+        ramp = min(dt, ramp_s)
+        area = r0 * ramp + (0.5 * (r1 - r0) / ramp_s * ramp * ramp if ramp_s > 0 else 0.0)
+        area += r1 * max(dt - ramp_s, 0.0)
+        return float((self._angle0 + area) % 360.0)
 
     def measured_rate(self, t: float) -> float:
         """What the table's encoder reports (resolution-limited)."""

@@ -1,6 +1,8 @@
-"""The simulated rate table: the ASCII three-letter protocol over a serial link.
+"""The simulated rate table: a command language (`drivers.table_profiles`) over a serial link.
 
-Commands (CR LF terminated) and replies:
+It speaks whichever language its plant's parameters name (`table.language` in a sim
+configuration: `labrunner`, the default, or `ideal_aerosmith`), parsing commands and formatting
+replies from the same profile the driver uses. labrunner's own language (CR LF terminated):
 
     IDN            -> IDN <vendor>,<model>,<serial>
     LIM            -> LIM <max rate deg/s> <acceleration deg/s^2>
@@ -11,8 +13,10 @@ Commands (CR LF terminated) and replies:
     anything else  -> ERR 1 UNKNOWN COMMAND
     errors         -> ERR <code> <text>       (2 bad number, 3 rate out of range, 5 table fault)
 
-State is the shared `SimWorld`'s table at the clock's time. Faults: garbage replies,
-silence, a table fault.
+A language without error replies (Ideal Aerosmith's, as far as its sources say) leaves a
+refused or unknown command unanswered; a jog before the servo is enabled (`SRV 1`) is refused
+that way too. State is the shared `SimWorld`'s table at the clock's time. Faults: garbage
+replies, silence, a table fault.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import threading
 from dataclasses import dataclass
 
 from labrunner.clock import Clock, io_timeouts
+from labrunner.drivers.table_profiles import TableLanguage, language_from
 
 from .links import SimPort
 from .world import SimWorld
@@ -40,8 +45,11 @@ class TableFaults:
 
 
 class TableServer:
-    def __init__(self, world: SimWorld, clock: Clock, port: SimPort, seed: int = 0) -> None:
+    def __init__(self, world: SimWorld, clock: Clock, port: SimPort, seed: int = 0,
+                 language: TableLanguage | str | None = None) -> None:
         self.world = world
+        self.language = language_from(language if language is not None else world.table.p.language)
+        self.servo_on = not self.language.has("enable")  # a language with an enable command starts off
         self.clock = clock
         self.port = port
         self.faults = TableFaults()
@@ -50,7 +58,7 @@ class TableServer:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name="sim-table", daemon=True)
         self._thread.start()
-        log.info("rate table sim: serving on %s", port.url)
+        log.info("rate table sim: serving on %s (language %s)", port.url, self.language.name)
 
     def _serve(self) -> None:
         buf = b""
@@ -79,40 +87,71 @@ class TableServer:
         if f.silent:
             io_timeouts.withhold(self.port.url)  # a dry run's driver stops waiting now, in virtual time
             return None
+        term = self.language.terminator_bytes
         if f.garbage:
-            return bytes(self._rng.randrange(256) for _ in range(self._rng.randrange(3, 20))) + b"\r\n"
-        return (self._answer(line.upper()) + "\r\n").encode("ascii")
+            return bytes(self._rng.randrange(256) for _ in range(self._rng.randrange(3, 20))) + term
+        answer = self._answer(line.upper())
+        if answer is None:  # a language without error replies: the command goes unanswered
+            io_timeouts.withhold(self.port.url)  # a dry run's driver stops waiting now, in virtual time
+            return None
+        return answer.encode("ascii") + term
 
-    def _answer(self, cmd: str) -> str:
+    def _error(self, code: int, text: str) -> str | None:
+        err = self.language.error
+        return err.format(code=code, text=text) if err is not None else None
+
+    def _answer(self, cmd: str) -> str | None:
+        lang = self.language
+        for operation, pattern in lang.command_patterns.items():
+            m = pattern.match(cmd)
+            if m:
+                return self._operate(operation, m.groupdict())
+        return self._error(1, "UNKNOWN COMMAND")
+
+    def _operate(self, operation: str, values: dict[str, str]) -> str | None:
+        lang = self.language
         table = self.world.table
         now = self.clock.now()
+        ack = lang.ack.format()
         with self.world.lock:
-            if cmd == "IDN":
-                return f"IDN {VENDOR},{MODEL},{SERIAL}"
-            if cmd == "LIM":
-                return f"LIM {table.p.max_rate_dps:.1f} {table.p.accel_dps2:.1f}"
-            if cmd == "PVE":
-                return f"PVE {table.measured_rate(now):+.5f}"
-            if cmd == "STA":
+            if operation == "identity":
+                return lang.replies["identity"].format(vendor=VENDOR, model=MODEL, serial=SERIAL)
+            if operation == "limits":
+                return lang.replies["limits"].format(max_rate=table.p.max_rate_dps, accel=table.p.accel_dps2)
+            if operation == "velocity":
+                return lang.replies["velocity"].format(rate=table.measured_rate(now))
+            if operation == "position":
+                return lang.replies["position"].format(deg=table.angle_at(now))
+            if operation == "status":
+                words = {v: k for k, v in lang.status_modes.items()}
                 if self.faults.fault:
-                    return f"STA FAULT {self.faults.fault.split()[0]}"
+                    return lang.replies["status"].format(mode=words["FAULT"], state=self.faults.fault.split()[0])
                 mode = "STOP" if table.commanded_dps == 0 else "JOG"
-                return f"STA {mode} {'SETTLED' if table.settled(now) else 'RAMPING'}"
-            if cmd == "STO":
+                return lang.replies["status"].format(mode=words[mode],
+                                                     state=lang.settled_state if table.settled(now) else "RAMPING")
+            if operation == "stop":
                 table.command(now, 0.0)
-                return "OK"
-            if cmd.startswith("JOG"):
+                return ack
+            if operation == "enable":
+                self.servo_on = True
+                return ack
+            if operation == "home":  # no angle is kept beyond the rate's integral: a stop at home
+                table.command(now, 0.0)
+                return ack
+            if operation == "jog":
                 if self.faults.fault:
-                    return f"ERR 5 TABLE FAULT {self.faults.fault}"
+                    return self._error(5, f"TABLE FAULT {self.faults.fault}")
+                if not self.servo_on:
+                    return self._error(4, "SERVO OFF")
                 try:
-                    rate = float(cmd[3:])
-                except ValueError:
-                    return "ERR 2 BAD NUMBER"
+                    rate = float(values["rate"])
+                except (KeyError, ValueError):
+                    return self._error(2, "BAD NUMBER")
                 if not abs(rate) <= table.p.max_rate_dps:
-                    return "ERR 3 RATE OUT OF RANGE"
+                    return self._error(3, "RATE OUT OF RANGE")
                 table.command(now, rate)
-                return "OK"
-        return "ERR 1 UNKNOWN COMMAND"
+                return ack
+        return self._error(1, "UNKNOWN COMMAND")
 
     def close(self) -> None:
         self._stop.set()

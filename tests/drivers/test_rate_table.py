@@ -8,9 +8,13 @@ import tty
 import pytest
 
 from labrunner.drivers.errors import InstrumentProtocolError, InstrumentRefused, InstrumentTimeout, LimitError
+from labrunner.drivers.protocols import Identity, TableStatus
 from labrunner.drivers.rate_table import SerialRateTable
+from labrunner.drivers.table_profiles import language_from
 from labrunner.sims.links import PtyPort, TcpSerialPort
 from labrunner.sims.table_server import TableServer
+
+from .expected_bytes import ExpectedLine
 
 
 class ScriptedPeer:
@@ -133,3 +137,116 @@ def test_link_that_drops_is_reopened(world, clock):
         drv.close()
         srv.close()
         port.close()
+
+
+# --- languages as profiles: exact bytes of each, and the driver against the sim speaking it -----------
+
+
+def test_labrunner_language_exact_bytes_on_a_socket_line():
+    line = ExpectedLine([
+        (b"IDN\r\n", b"IDN LABRUNNER,RT-SIM-1,SN0001\r\n"),
+        (b"LIM\r\n", b"LIM 1000.0 100.0\r\n"),
+        (b"JOG+12.5000\r\n", b"OK\r\n"),
+        (b"STA\r\n", b"STA JOG RAMPING\r\n"),
+        (b"PVE\r\n", b"PVE +12.49990\r\n"),
+        (b"STO\r\n", b"OK\r\n"),
+        (b"JOG+999.0000\r\n", b"ERR 3 RATE OUT OF RANGE\r\n"),
+    ])
+    t = SerialRateTable(line.url, max_rate_dps=1000, timeout_s=1.0, retries=0)
+    try:
+        assert t.identity() == Identity("LABRUNNER", "RT-SIM-1", "SN0001", {"language": "labrunner"})
+        assert t.limits() == (1000.0, 100.0)
+        t.jog(12.5)
+        assert t.status() == TableStatus(mode="JOG", settled=False)
+        assert t.velocity() == 12.4999
+        t.stop()
+        with pytest.raises(InstrumentRefused, match="error 3: RATE OUT OF RANGE"):
+            t.jog(999.0)
+    finally:
+        t.close()
+    line.check()
+
+
+def test_ideal_aerosmith_language_exact_bytes():
+    """JOG/STO/SRV/HOM, queries ending in '?', actions answered by the bare terminator (table_profiles)."""
+    line = ExpectedLine([
+        (b"SRV 1\r\n", b"\r\n"),               # servo on, once per connection, before the first jog
+        (b"JOG 12.5000\r\n", b"\r\n"),
+        (b"JOG?\r\n", b"12.4998\r\n"),         # status from the velocity: within 0.1 % + 0.01 of the command
+        (b"JOG -30.0000\r\n", b"\r\n"),
+        (b"JOG?\r\n", b"-3.2000\r\n"),         # still ramping
+        (b"PPO?\r\n", b"123.4560\r\n"),
+        (b"STO\r\n", b"\r\n"),
+        (b"HOM\r\n", b"\r\n"),
+    ])
+    t = SerialRateTable(line.url, max_rate_dps=300, timeout_s=1.0, retries=0, language="ideal_aerosmith")
+    try:
+        assert t.identity().vendor == "Ideal Aerosmith"  # no identity query in the sources: the profile's
+        assert t.limits() == (360.0, 100.0)
+        t.jog(12.5)
+        assert t.status() == TableStatus(mode="JOG", settled=True)
+        t.jog(-30.0)
+        assert t.status() == TableStatus(mode="JOG", settled=False)
+        assert t.position() == 123.456
+        t.stop()
+        t.home()
+    finally:
+        t.close()
+    line.check()
+
+
+def test_a_custom_language_is_configuration():
+    lang = language_from({"base": "ideal_aerosmith", "name": "cr_only", "terminator": "\r"})
+    line = ExpectedLine([(b"JOG?\r", b"0.0000\r")])
+    t = SerialRateTable(line.url, max_rate_dps=300, timeout_s=1.0, retries=0, language=lang)
+    try:
+        assert t.velocity() == 0.0
+    finally:
+        t.close()
+    line.check()
+    with pytest.raises(ValueError, match=r"unknown table language 'nope'; known: labrunner, ideal_aerosmith"):
+        language_from("nope")
+    with pytest.raises(ValueError, match=r"the jog command needs a \{rate\} field"):
+        language_from({"base": "labrunner", "commands": {"jog": "JOG"}})
+    with pytest.raises(ValueError, match=r"reply of 'velocity' has unknown field\(s\) speed"):
+        language_from({"base": "labrunner", "replies": {"velocity": "PVE {speed:f}"}})
+
+
+@pytest.fixture
+def ideal_table(world, clock):
+    port = TcpSerialPort()
+    srv = TableServer(world, clock, port, language="ideal_aerosmith")
+    drv = SerialRateTable(port.url, max_rate_dps=200, timeout_s=0.3, retries=1, backoff_s=0.01, sleep=clock.sleep,
+                          language="ideal_aerosmith")
+    yield drv, srv, clock
+    drv.close()
+    srv.close()
+    port.close()
+
+
+def test_ideal_aerosmith_driver_against_the_sim(ideal_table):
+    drv, srv, clock = ideal_table
+    assert not srv.servo_on
+    drv.jog(100.0)
+    assert srv.servo_on and srv.commands == 2  # SRV 1, then JOG
+    assert not drv.status().settled
+    clock.sleep(0.5)
+    assert drv.velocity() == pytest.approx(50.0, rel=0.02)
+    clock.sleep(2.0)
+    assert drv.status() == TableStatus(mode="JOG", settled=True)
+    assert abs(drv.velocity() / 100.0 - 1.0) <= 1.0001e-4
+    a0 = drv.position()
+    clock.sleep(1.0)
+    assert (drv.position() - a0) % 360.0 == pytest.approx(100.0, abs=0.1)  # 100 deg/s for 1 s
+    drv.stop()
+    clock.sleep(2.0)
+    assert drv.velocity() == 0.0 and drv.status() == TableStatus(mode="STOP", settled=True)
+
+
+def test_ideal_aerosmith_sim_leaves_a_refused_jog_unanswered(ideal_table):
+    drv, srv, clock = ideal_table
+    srv.faults.fault = "E17 OVERCURRENT"
+    with pytest.raises(InstrumentTimeout, match=r"command 'JOG 10.0000': no reply"):
+        drv.jog(10.0)
+    srv.faults.fault = None
+    drv.jog(10.0)
