@@ -346,7 +346,7 @@ def test_generated_procedures_and_sim_configurations(tmp_path_factory, proc_edit
     assert_run_starts_iff_check_accepts(d, yaml.safe_dump(proc), yaml.safe_dump(sim) if with_sim else None)
 
 
-@FUZZ
+@settings(FUZZ, max_examples=max(1, FUZZ.max_examples // 2))
 @given(edits=_edits(dict(lab_module.RANGES)))
 def test_generated_lab_configurations(tmp_path_factory, edits):
     data = yaml.safe_load(LAB)
@@ -365,3 +365,32 @@ def test_generated_lab_configurations(tmp_path_factory, edits):
         assert combined == 2  # a lab configuration check refuses is refused with any procedure
     elif combined:
         assert "is not the IMU's rate" in err, err  # the only thing a procedure adds against a valid lab
+    # `run --lab`: refused before a driver is built, or started (and stopped before it connects to anything).
+    run_code, run_err, started, drivers_built = _run_lab_start(proc, lab, d / "run.db")
+    if combined:
+        assert run_code == 2 and started == 0 and drivers_built == 0, run_err
+        assert not (d / "run.db").exists()
+    else:
+        assert run_code == 3 and started == 1, f"check accepted it, run did not start: {run_err}"
+
+
+def _run_lab_start(proc: Path, lab: Path, db: Path) -> tuple[int, str, int, int]:
+    """`labrunner run PROC --lab LAB`, stopped where the sequencer would begin (before preflight connects to
+    the instruments, which are not there); returns the exit code, stderr, runs started and drivers built."""
+    started: list[int] = []
+    built: list[int] = []
+    real_build = lab_module.build_drivers
+
+    def counting_build(*a: Any, **k: Any) -> Any:
+        built.append(1)
+        return real_build(*a, **k)
+
+    def stop_at_start(runner: Any) -> str:
+        started.append(runner.cid)
+        return "paused"
+
+    with mock.patch.object(sequencer.CampaignRunner, "run", stop_at_start), \
+            mock.patch.object(lab_module, "build_drivers", counting_build):
+        code, out, err, _ = _cli(["run", proc, "--lab", lab, "--db", db, "--quiet"])
+    assert "Traceback" not in err + out
+    return code, err, len(started), len(built)
