@@ -8,6 +8,7 @@ world and the fault-plan format, with errors naming the file and line.
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -137,6 +138,13 @@ def sim_config_problems(data: dict[str, Any], positions: dict[tuple[Any, ...], i
     if model is not None and not isinstance(model, (str, dict)):
         problems.append(f"{at('imu_model')}: imu_model must be a mapping or the path of a JSON/YAML model")
     chamber: dict[str, Any] = data["chamber"] if isinstance(data.get("chamber"), dict) else {}
+    table = data["table"] if isinstance(data.get("table"), dict) else {}
+    if "language" in table:
+        from labrunner.drivers.table_profiles import LANGUAGES
+
+        if table["language"] not in LANGUAGES:
+            problems.append(f"{at('table', 'language')}: table.language must be one of {', '.join(LANGUAGES)}, got "
+                            f"{table['language']!r}")
     if chamber.get("controller_units", "C") not in ("C", "F"):
         problems.append(f"{at('chamber', 'controller_units')}: chamber.controller_units must be C or F, got "
                         f"{chamber['controller_units']!r}")
@@ -201,7 +209,29 @@ def _line_of(problem: str) -> int:
 def _build(data: dict[str, Any]) -> None:
     from labrunner.sims.world import SimLabConfig
 
-    SimLabConfig.from_dict(data)
+    config = SimLabConfig.from_dict(data)
+    # The IMU model (inline or from a file) streams every frame: a NaN or infinite coefficient would
+    # fill the data with NaN (its effects check their own parameters' ranges).
+    where = _non_finite(config.imu_model.to_dict(), "imu_model")
+    if where:
+        raise ValueError(f"{where} must be a finite number")
+
+
+def _non_finite(value: Any, path: str) -> str | None:
+    """The path of the first NaN or infinite number in nested mappings and lists, or None."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else path
+    if isinstance(value, dict):
+        items: Any = value.items()
+    elif isinstance(value, (list, tuple)):
+        items = ((f"[{i}]", v) for i, v in enumerate(value))
+    else:
+        return None
+    for key, item in items:
+        found = _non_finite(item, f"{path}{key}" if str(key).startswith("[") else f"{path}.{key}")
+        if found:
+            return found
+    return None
 
 
 def load_sim_config(source: str | Path | dict[str, Any] | None) -> SimLabConfig:
