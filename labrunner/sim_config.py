@@ -73,8 +73,11 @@ def sim_config_dict(source: str | Path | dict[str, Any] | None) -> dict[str, Any
         raise ConfigError(problems)
     try:
         _build(data)
-    except ConfigError:
-        raise
+    except ConfigError as exc:  # the IMU model's file (the only file a sim configuration names)
+        line = positions.get(("imu_model",), 1)
+        raise ConfigError([f"{name}:{line}: imu_model: {m}" for m in exc.messages]) from None
+    except RecursionError:
+        raise ConfigError([f"{name}:{positions.get(('imu_model',), 1)}: imu_model: nested too deeply"]) from None
     except (ValueError, TypeError, KeyError, AttributeError, OverflowError, OSError) as exc:
         # What is left is the simulated world's own validation (the IMU model's effects, the operator,
         # the IMU format): located at the first key the message names.

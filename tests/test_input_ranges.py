@@ -299,3 +299,22 @@ def test_resume_on_a_lab_given_anew_is_checked_as_run_checks_it(tmp_path):
     with pytest.raises(ConfigError, match=rf"sample_rate_hz 50 Hz is not the IMU's rate \({re.escape(str(other))}"):
         start_resume(db, lab=other)
     start_resume(db, lab=lab).close()
+
+
+@pytest.mark.parametrize("name, content, expect", [
+    ("missing.json", None, r"sim.yaml:2: imu_model: .*missing.json: file not found"),
+    ("deep.json", "[" * 100_000, r"sim.yaml:2: imu_model: nested too deeply"),
+    ("nan.json", '{"accel": {"noise_density": NaN}}', r"sim.yaml:2: imu_model.accel.noise_density must be a finite"),
+    ("big.json", "[" + "0," * 600_000 + "0]", r"sim.yaml:2: imu_model: .*big.json: larger than 1,000,000 bytes"),
+    ("bomb.yaml", "a: &a [x, x]\n" + "".join(f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, "
+                                             f"*{chr(97 + i)}, *{chr(97 + i)}]\n" for i in range(12)),
+     r"sim.yaml:2: imu_model: .*bomb.yaml:\d+: the document expands"),
+])
+def test_an_imu_model_file_is_read_with_the_same_limits(tmp_path, name, content, expect):
+    model = tmp_path / name
+    if content is not None:
+        model.write_text(content)
+    sim = tmp_path / "sim.yaml"
+    sim.write_text(f"seed: 1\nimu_model: {model}\n")
+    with pytest.raises(ConfigError, match=expect):
+        sim_config_dict(sim)

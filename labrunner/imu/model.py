@@ -193,10 +193,10 @@ class ImuModel:
     @classmethod
     def load(cls, path: str | Path) -> ImuModel:
         """Load a model written by `save` (JSON) or a YAML file of the same shape."""
-        text = Path(path).read_text()
-        if str(path).endswith((".yaml", ".yml")):
-            from labrunner.yaml_config import load_yaml  # the one YAML reader: size, aliases, duplicate keys
+        from labrunner.yaml_config import load_yaml, read_text  # the one reader: size, encoding, aliases, duplicates
 
+        text = read_text(path)
+        if str(path).endswith((".yaml", ".yml")):
             data, _ = load_yaml(text, str(path))
         else:
             data = json.loads(text)
