@@ -42,9 +42,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field
 
+from labrunner.clock import Clock
+
+from .builtin import LabrunnerImuSection
 from .imu_frames import DecodedFrames, Rejections
 from .imu_serial import SerialImu
+from .registry import Driver, DriverOptions
 
 log = logging.getLogger(__name__)
 
@@ -360,3 +365,20 @@ class XsensMtiImu(SerialImu):
                  on_event: Callable[[str, str], None] | None = None) -> None:
         super().__init__(url, rate_hz=rate_hz, baudrate=baudrate, name=name, keep_s=keep_s, reopen_s=reopen_s,
                          on_event=on_event, codec=XBUS)
+
+
+class XsensMtiSection(LabrunnerImuSection):
+    """A lab configuration's `imu:` section for `driver: xsens_mti` (the MTi's factory baud rate)."""
+
+    baudrate: int = Field(115200, gt=0)
+    rate_hz: float = Field(100.0, gt=0, le=10000)
+
+
+def make_xsens_mti(section: XsensMtiSection, clock: Clock, options: DriverOptions) -> XsensMtiImu:
+    return XsensMtiImu(section.port, rate_hz=section.rate_hz, baudrate=section.baudrate, name=options.name,
+                       on_event=options.on_event)
+
+
+#: The `labrunner.drivers` entry point `xsens_mti` (pyproject.toml).
+XSENS_MTI = Driver("imu", make_xsens_mti, XsensMtiSection, "Xsens MTi, Xbus MTData2 (acceleration, rate of turn, "
+                   "temperature, packet counter)")

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -67,8 +67,7 @@ class SimLabConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SimLabConfig:
         """Build from a mapping; unknown keys are refused with their name."""
-        known = {"seed", "chamber", "table", "imu_thermal", "imu_model", "imu_rate_hz", "orientation", "faults",
-                 "operator"}
+        known = {f.name for f in fields(cls)}  # every field is a key (as sim_config checks them)
         unknown = set(data) - known
         if unknown:
             raise ValueError(f"unknown sim configuration key(s): {', '.join(sorted(unknown))}")
