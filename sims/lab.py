@@ -114,7 +114,10 @@ class SimLab:
             chamber: dict[str, Any] = {"transport": "tcp", "host": self.host, "port": self.chamber.port}
         else:
             chamber = {"transport": "rtu", "serial_port": self.chamber.url, "baudrate": 115200}
-        chamber["profile"] = self.chamber_profile
+        if self.chamber_profile in ("watlow_f4", "watlow_f4t"):  # a controller with its own driver
+            chamber = {"driver": self.chamber_profile, **chamber}
+        else:
+            chamber["profile"] = self.chamber_profile
         # Loopback answers within a millisecond: short timeouts keep faulted dry runs quick.
         chamber["timeout_s"] = 0.25
         imu: dict[str, Any] = {"port": self.imu_port.url, "baudrate": 921600, "rate_hz": self.config.imu_rate_hz}
@@ -124,7 +127,8 @@ class SimLab:
         return {
             "name": "simulated lab",
             "chamber": chamber,
-            "table": {"port": self.table_port.url, "baudrate": 115200, "timeout_s": 0.25},
+            "table": {**({"driver": self.table.language.name} if self.table.language.name != "labrunner" else {}),
+                      "port": self.table_port.url, "baudrate": 115200, "timeout_s": 0.25},
             "imu": imu,
         }
 

@@ -67,3 +67,94 @@ def test_written_lab_configuration_reaches_all_three_sims(served):
         assert lab.table.velocity() == pytest.approx(20.0, rel=1e-3)
     finally:
         lab.close()
+
+
+# --- a lab of other controllers: a Watlow F4 in deg F and an Ideal Aerosmith table, served --------------
+
+SIM_F_IDEAL = """\
+seed: 5
+chamber: {controller_units: F, controller_decimals: 1}
+table: {language: ideal_aerosmith}
+"""
+
+
+def _serve(tmp_path, *extra):
+    lab_yaml = tmp_path / "lab.yaml"
+    proc = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "sim", "serve", "--lab-config", str(lab_yaml),
+                             *map(str, extra)], stdout=subprocess.PIPE, text=True)
+    info = None
+    for line in proc.stdout:
+        if line.strip().startswith("ready "):
+            info = json.loads(line.split("ready ", 1)[1])
+            break
+    assert info is not None, "sim serve did not report ready"
+    return proc, info, lab_yaml
+
+
+@pytest.fixture
+def served_f_ideal(tmp_path):
+    sim = tmp_path / "sim.yaml"
+    sim.write_text(SIM_F_IDEAL)
+    proc, info, lab_yaml = _serve(tmp_path, "--speed", "600", "--config", sim)
+    yield info, lab_yaml
+    proc.terminate()
+    proc.wait(10)
+
+
+def _quick_z_up(tmp_path):
+    """The shipped quick procedure with the served IMU's one orientation (a served lab's operator cannot
+    turn the simulated IMU, and the mount is checked against gravity) and two of its temperatures."""
+    from importlib.resources import files
+
+    text = files("labrunner.procedures").joinpath("quick.yaml").read_text()
+    text = text.replace("orientations: [x_up, x_down, y_up, y_down, z_up, z_down]", "orientations: [z_up]")
+    text = text.replace("list_c: [-10, 10, 30, 50]", "list_c: [10, 30]")
+    assert "orientations: [z_up]" in text and "list_c: [10, 30]" in text
+    path = tmp_path / "quick_z_up.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_quick_run_against_a_served_f4_in_fahrenheit_and_an_ideal_aerosmith_table(tmp_path, served_f_ideal):
+    _, lab_yaml = served_f_ideal
+    lab = yaml.safe_load(lab_yaml.read_text())
+    assert lab["chamber"]["driver"] == "watlow_f4" and lab["table"]["driver"] == "ideal_aerosmith"
+    checked = subprocess.run([sys.executable, "-m", "labrunner.cli", "check", "--lab", str(lab_yaml)],
+                             capture_output=True, text=True, timeout=60)
+    assert checked.returncode == 0, checked.stderr
+    assert "chamber  driver watlow_f4 (labrunner)" in checked.stdout
+    assert "table    driver ideal_aerosmith (labrunner)" in checked.stdout
+    assert "installed drivers:" in checked.stdout and "serial_table (table:" in checked.stdout
+
+    db = tmp_path / "served.db"
+    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(_quick_z_up(tmp_path)), "--lab",
+                          str(lab_yaml), "--db", str(db), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    err = []
+    for line in p.stderr:  # the operator: Enter at each prompt, once it is shown
+        err.append(line)
+        if line.startswith(">>> Press Enter"):
+            p.stdin.write("\n")
+            p.stdin.flush()
+    p.wait(240)
+    assert p.returncode == 0, "".join(err)[-3000:]
+    from labrunner.store import Store
+
+    with Store.open_existing(db) as store:
+        cid = store.resolve(None)
+        steps = store.steps_frame(cid)
+        events = store.events_frame(cid)
+        blocks = store.campaign(cid)
+    assert len(steps) == 16 and (steps.status == "done").all() and (steps.n_samples == 500).all()
+    assert not events.kind.isin(["fault"]).any(), events[events.kind == "fault"].message.tolist()
+    import labrunner
+
+    with labrunner.open(db) as opened:
+        samples = opened.campaign().samples()
+    # The chamber read in deg F and converted: the records at 30 C hold the chamber near 30 C, not 86.
+    at_30 = samples[samples.setpoint_c == 30.0]
+    assert at_30.chamber_c.mean() == pytest.approx(30.0, abs=0.5)
+    # The Ideal Aerosmith table held every commanded rate while recording (read back with JOG?).
+    held = samples.groupby("step_idx").agg(cmd=("rate_cmd_dps", "first"), rate=("table_rate_dps", "mean"))
+    assert ((held.rate - held.cmd).abs() <= 1e-3 * held.cmd.abs() + 0.01).all(), held
+    assert blocks.lab_config["table"]["driver"] == "ideal_aerosmith"
