@@ -174,3 +174,27 @@ def test_a_counter_far_behind_is_the_stream_running_on_not_a_late_frame(raw_line
     port.write(_frames([5, 6, 7]))  # an IMU reset without a restart_stream: read as a jump forward
     assert drv.wait_counter16(7, 2.0)
     assert drv.latest().counter > start and drv.duplicates == 0
+
+
+def test_a_port_closed_under_the_reader_is_a_lost_link_not_a_dead_thread():
+    # Another thread (a read that failed there) closed the port while the reader waited on it: pyserial's
+    # socket:// then has no socket and `fileno()` raises AttributeError; the reader must carry on.
+    import time
+
+    events = []
+    port = TcpSerialPort()
+    drv = SerialImu(port.url, rate_hz=50.0, reopen_s=0.05, on_event=lambda k, m: events.append(k))
+    drv.connect()
+    try:
+        assert port.wait_connected(2.0)
+        drv._ser.close()  # behind the driver's back, as the failing read's cleanup did
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and "imu_link_restored" not in events:
+            time.sleep(0.02)
+        assert events[:2] == ["imu_link_lost", "imu_link_restored"]
+        assert drv._thread is not None and drv._thread.is_alive()
+        port.write(_frames([1, 2, 3]))
+        assert drv.wait_counter16(3, 2.0)
+    finally:
+        drv.close()
+        port.close()
