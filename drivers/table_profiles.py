@@ -41,7 +41,7 @@ def template_regex(template: str) -> re.Pattern[str]:
             continue
         if not name.isidentifier():
             raise ValueError(f"template {template!r}: field {name!r} must be a name")
-        numeric = bool(spec) and spec[-1] in _NUMERIC_SPECS
+        numeric = bool(spec) and str(spec)[-1] in _NUMERIC_SPECS
         parts.append(f"(?P<{name}>{_NUMBER})" if numeric else f"(?P<{name}>.*?)")
     return re.compile("^" + "".join(parts) + "$")
 

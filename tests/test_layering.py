@@ -41,6 +41,7 @@ ROOMS: dict[str, str] = {
     "labrunner.report_html": "orchestration",  # reads the store, draws with the analysis's figures
     "labrunner.fault_plan": "orchestration",
     "labrunner.lab": "composition",
+    "labrunner.lab_ping": "composition",
     "labrunner.operator": "composition",  # the console operator of a real lab
     "labrunner.api": "composition",
     "labrunner.campaign_session": "composition",

@@ -158,3 +158,85 @@ def test_quick_run_against_a_served_f4_in_fahrenheit_and_an_ideal_aerosmith_tabl
     held = samples.groupby("step_idx").agg(cmd=("rate_cmd_dps", "first"), rate=("table_rate_dps", "mean"))
     assert ((held.rate - held.cmd).abs() <= 1e-3 * held.cmd.abs() + 0.01).all(), held
     assert blocks.lab_config["table"]["driver"] == "ideal_aerosmith"
+
+
+# --- labrunner check --lab --ping -----------------------------------------------------------------------
+
+
+def test_ping_reads_every_instrument_and_gravity_without_moving_anything(tmp_path):
+    sim = tmp_path / "sim.yaml"
+    sim.write_text("seed: 2\norientation: y_down\nchamber: {controller_units: F, controller_decimals: 0}\n"
+                   "table: {language: ideal_aerosmith}\n")
+    proc, _, lab_yaml = _serve(tmp_path, "--speed", "50", "--config", sim)
+    try:
+        r = subprocess.run([sys.executable, "-m", "labrunner.cli", "check", "--lab", str(lab_yaml), "--ping"],
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stdout + r.stderr
+        out = r.stdout
+        assert "chamber  ok: driver watlow_f4" in out and "units F" in out and "decimals 0" in out
+        assert "air 23" in out or "air 22" in out  # converted from whole degrees F
+        assert "table    ok: driver ideal_aerosmith" in out and "limits 360 deg/s" in out
+        assert "status STOP settled" in out
+        assert "imu      ok: driver labrunner_imu" in out
+        assert "gravity  ok: y axis down" in out
+        # Nothing moved, nothing written: the served lab still holds its starting setpoint and rest.
+        from labrunner.lab import lab_config_from_dict, real_lab
+
+        lab = real_lab(lab_config_from_dict(yaml.safe_load(lab_yaml.read_text())), max_rate_dps=10)
+        try:
+            assert lab.table.velocity() == 0.0
+            assert lab.chamber.read_setpoint() == pytest.approx(23.0, abs=0.3)
+        finally:
+            lab.close()
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+def test_ping_of_an_unreachable_lab_is_one_line_per_problem_and_exit_1(tmp_path):
+    import socket
+
+    ports = []
+    for _ in range(3):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    lab = tmp_path / "lab.yaml"
+    lab.write_text(f"name: nobody home\nchamber: {{driver: watlow_f4, port: {ports[0]}, retries: 0}}\n"
+                   f"table: {{port: 'socket://127.0.0.1:{ports[1]}', retries: 0}}\n"
+                   f"imu: {{port: 'socket://127.0.0.1:{ports[2]}'}}\n")
+    r = subprocess.run([sys.executable, "-m", "labrunner.cli", "check", "--lab", str(lab), "--ping"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr
+    errors = [line for line in r.stderr.splitlines() if line.strip()]
+    assert len(errors) == 1, r.stderr
+    assert errors[0].startswith(f"labrunner check: error: {lab}: ping failed: chamber: connect: chamber at "
+                                f"modbus-tcp://127.0.0.1:{ports[0]}")
+    assert f"table: connect: rate table at socket://127.0.0.1:{ports[1]}: cannot open serial line" in errors[0]
+    assert f"imu: connect: imu at socket://127.0.0.1:{ports[2]}" in errors[0]
+    assert "chamber  FAILED" in r.stdout and "table    FAILED" in r.stdout
+
+
+def test_ping_needs_a_lab():
+    r = subprocess.run([sys.executable, "-m", "labrunner.cli", "check", "quick", "--ping"], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and "--ping talks to the instruments of a lab configuration" in r.stderr
+
+
+def test_gravity_verdicts():
+    import numpy as np
+
+    from labrunner.lab_ping import _gravity
+
+    rng = np.random.default_rng(1)
+    noise = rng.normal(0, 0.002, (50, 3))
+    v, problem = _gravity(noise + [0.0, 0.0, -1.0], 10.0, 0.1)
+    assert problem is None and v.measured == "z_down"
+    tilt = np.deg2rad(20.0)
+    v, problem = _gravity(noise + [np.sin(tilt), 0.0, np.cos(tilt)], 10.0, 0.1)
+    assert "z axis up is 20.0° from vertical, more than 10°" in problem
+    v, problem = _gravity(noise + [0.0, 1.5, 0.0], 10.0, 0.1)
+    assert "|a| = 1.500 g, not 1 g within 0.1 g" in problem
+    v, problem = _gravity(np.empty((0, 3)), 10.0, 0.1)
+    assert v is None and "no IMU frames" in problem

@@ -11,6 +11,7 @@ from labrunner.errors import UserError
 from labrunner.store_address import StoreAddress, store_arg
 
 if TYPE_CHECKING:
+    from labrunner.lab import LabConfig
     from labrunner.procedure import Procedure
 
 
@@ -31,6 +32,10 @@ examples:
     p.add_argument("procedure", type=Path, nargs="?", metavar="PROCEDURE",
                    help="procedure YAML, or the name of a shipped one (quick, paper_campaign)")
     p.add_argument("--lab", type=Path, metavar="LAB.yaml", help="lab configuration naming the instruments")
+    p.add_argument("--ping", action="store_true",
+                   help="with --lab: connect to each instrument and read identity, limits and a second of IMU "
+                        "frames, check gravity (1 g, which axis is up); nothing is moved or written (exit 1 when "
+                        "an instrument fails)")
     p.add_argument("--sim-config", type=Path, metavar="SIM.yaml",
                    help="sim configuration (seed, plants, IMU model, faults)")
     p.add_argument("--sim", action="store_true",
@@ -47,6 +52,8 @@ examples:
 def cmd_check(args: argparse.Namespace) -> int:
     if not (args.procedure or args.lab or args.sim_config or args.csv or args.db):
         raise UserError("nothing to check: give a procedure, --lab, --sim-config, --csv or --db")
+    if args.ping and not args.lab:
+        raise UserError("--ping talks to the instruments of a lab configuration: give --lab LAB.yaml")
     if args.sim and not args.procedure:
         raise UserError("--sim checks a procedure as `run --sim` would start it: give the procedure")
     if args.procedure:
@@ -67,6 +74,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"{args.lab}: lab configuration '{cfg.name}' is valid")
         for line in describe_lab_config(cfg):
             print(f"  {line}")
+        if args.ping:
+            _ping(args.lab, cfg)
     if args.sim_config:
         sim = api.load_sim_config(args.sim_config)
         print(f"{args.sim_config}: sim configuration is valid (seed {sim.seed}, "
@@ -96,6 +105,22 @@ def _check_run(procedure: Procedure, args: argparse.Namespace) -> None:
         validate_run(procedure, sim=sim_config_dict(args.sim_config), sim_source=args.sim_config)
         print(f"{args.procedure}: `labrunner run --sim` would start it"
               + (f" with {args.sim_config}" if args.sim_config else ""))
+
+
+def _ping(path: Path, cfg: LabConfig) -> None:
+    """`--ping`: the instruments' answers, one block each; any failure ends the command with exit 1."""
+    from labrunner.lab_ping import ping_lab
+
+    report = ping_lab(cfg)
+    print(f"{path}: ping (nothing is moved or written)")
+    for line in report.lines():
+        print(f"  {line}")
+    if not report.ok:
+        failed = [f"{i.kind}: {i.problem}" for i in report.instruments if i.problem]
+        failed += [report.gravity_problem] if report.gravity_problem else []
+        err = UserError(f"{path}: ping failed: " + "; ".join(failed))
+        err.exit_code = 1
+        raise err
 
 
 def _check_store(db: StoreAddress) -> int:
