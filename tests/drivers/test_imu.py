@@ -198,3 +198,23 @@ def test_a_port_closed_under_the_reader_is_a_lost_link_not_a_dead_thread():
     finally:
         drv.close()
         port.close()
+
+
+def test_a_simulated_imu_sending_only_corrupt_frames_is_reported_as_such():
+    from labrunner.drivers.errors import InstrumentProtocolError
+    from labrunner.fault_kinds import FaultKind
+    from labrunner.lab import simulated_lab
+
+    lab = simulated_lab(max_rate_dps=150.0)
+    try:
+        assert lab.sim is not None
+        lab.sim.apply_fault(FaultKind.IMU_CORRUPT, count=10_000)
+        lab.imu.connect()
+        lab.clock.sleep(2.0)  # 100 frames, every one corrupted on the line
+        with pytest.raises(InstrumentProtocolError) as err:
+            lab.imu.latest()
+        message = str(err.value)
+        assert "no valid frame" in message and "bytes received, 0 valid labrunner_frame frame(s)" in message
+        assert "bad checksum" in message and "resynchronisation skipped" in message
+    finally:
+        lab.close()
