@@ -89,7 +89,8 @@ def _load(ep: metadata.EntryPoint) -> InstalledDriver:
     try:
         obj = ep.load()
     except Exception as exc:  # a third-party package's import error must not hide the other drivers
-        log.warning("driver %r (%s from %s) cannot be loaded: %s", ep.name, ep.value, dist, exc)
+        # Said where it matters: `check --lab` lists it as broken, and naming it in a lab is an error.
+        log.info("driver %r (%s from %s) cannot be loaded: %s", ep.name, ep.value, dist, exc)
         return InstalledDriver(ep.name, ep.value, dist, None, f"cannot be loaded: {type(exc).__name__}: {exc}")
     if not isinstance(obj, Driver):
         return InstalledDriver(ep.name, ep.value, dist, None,
