@@ -97,13 +97,13 @@ def serve_command(args: argparse.Namespace) -> int:
 
     if args.lab_config:  # before the servers start: a refusal leaves nothing running
         check_output(args.lab_config, inputs=[args.config], force=args.force, option="--lab-config")
-    if not is_loopback(args.host):
-        print(f"labrunner sim serve: warning: listening on {args.host}, not loopback: the simulated lab is reachable "
-              "from the network (anyone there can drive the simulated chamber, table and IMU)", file=sys.stderr,
-              flush=True)
     lab = api.serve_sim(config=args.config, speed=args.speed, host=args.host, link=args.link,
                         chamber_transport=args.chamber_transport, profile=args.profile,
                         ports=(args.chamber_port, args.table_port, args.imu_port))
+    if not is_loopback(args.host):  # once it listens: a host it cannot bind gets the bind's error alone
+        print(f"labrunner sim serve: warning: listening on {args.host}, not loopback: the simulated lab is reachable "
+              "from the network (anyone there can drive the simulated chamber, table and IMU)", file=sys.stderr,
+              flush=True)
     lab_config = lab.lab_config()
     lab_config["clock"] = {"speed": args.speed}
     if args.lab_config:
