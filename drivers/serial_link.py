@@ -4,15 +4,20 @@ from __future__ import annotations
 
 import serial
 
-from labrunner.clock import Deadline
+from labrunner.clock import Deadline, io_timeouts
 
 from .errors import InstrumentTimeout
 
 
 def open_serial(url: str, *, baudrate: int, timeout_s: float, instrument: str) -> serial.SerialBase:
-    """Open `url` raw 8N1; failure names the instrument and the port."""
+    """Open `url` raw 8N1; failure names the instrument and the port.
+
+    The write timeout is the policy's (`io_timeouts`): pyserial's socket:// write checks its clock
+    after sending, so a slow machine alone would fail a write to a simulator on a short timeout.
+    """
+    wait_s = io_timeouts.wall_timeout(url, timeout_s) if timeout_s > 0 else timeout_s
     try:
-        return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s, write_timeout=timeout_s,
+        return serial.serial_for_url(url, baudrate=baudrate, timeout=wait_s, write_timeout=wait_s,
                                      bytesize=8, parity="N", stopbits=1)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise InstrumentTimeout(instrument, url, f"cannot open serial line: {exc}") from None
