@@ -159,7 +159,7 @@ def serve_sim(*, config: str | Path | dict[str, Any] | None = None, speed: float
     try:
         lab = SimLab(sim_config, ScaledClock(speed), host=host, link=link, chamber_transport=chamber_transport,
                      chamber_profile=profile, ports=SimPorts(chamber=ports[0], table=ports[1], imu=ports[2]))
-    except OSError as exc:
+    except (OSError, ValueError) as exc:  # ValueError: a profile that cannot show the configured units
         raise UserError(f"cannot start the simulated lab: {exc}") from None
     log.info("simulated lab serving on %s at %gx", host, speed)
     return lab

@@ -240,3 +240,13 @@ def test_gravity_verdicts():
     assert "|a| = 1.500 g, not 1 g within 0.1 g" in problem
     v, problem = _gravity(np.empty((0, 3)), 10.0, 0.1)
     assert v is None and "no IMU frames" in problem
+
+
+def test_serving_units_the_profile_cannot_report_is_refused_in_one_line(tmp_path):
+    sim = tmp_path / "sim.yaml"
+    sim.write_text("chamber: {controller_units: F}\n")
+    r = subprocess.run([sys.executable, "-m", "labrunner.cli", "sim", "serve", "--profile", "watlow_f4t", "--config",
+                        str(sim), "--duration", "1"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert ("labrunner sim serve: error: cannot start the simulated lab: chamber sim: profile 'watlow_f4t' has no "
+            "units register") in r.stderr
