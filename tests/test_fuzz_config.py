@@ -339,7 +339,8 @@ def _edits(table: dict[str, Any]) -> st.SearchStrategy[list[tuple[str, Any]]]:
 # Derandomized in the suite (CI sees the same cases every time); LABRUNNER_FUZZ_EXAMPLES=5000
 # LABRUNNER_FUZZ_RANDOM=1 hunts further.
 FUZZ = settings(max_examples=int(os.environ.get("LABRUNNER_FUZZ_EXAMPLES", "100")),
-                deadline=timedelta(seconds=CHECK_LIMIT_S), derandomize=not os.environ.get("LABRUNNER_FUZZ_RANDOM"),
+                # An example is a check (held to CHECK_LIMIT_S itself) and a run's start and preflight.
+                deadline=timedelta(seconds=3 * CHECK_LIMIT_S), derandomize=not os.environ.get("LABRUNNER_FUZZ_RANDOM"),
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 
 
