@@ -94,8 +94,7 @@ def weighted_lstsq(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None,
     return LinearFit(coef=coef, cov=cov, identifiable=ident, dof=int(dof), sigma2=sigma2, residual=resid)
 
 
-def gauge_lstsq(x: np.ndarray, y: np.ndarray, w: np.ndarray, preferred: np.ndarray,
-                identifiable: np.ndarray) -> np.ndarray:
+def gauge_lstsq(x: np.ndarray, y: np.ndarray, w: np.ndarray, preferred: np.ndarray) -> np.ndarray:
     """(p, k) a least-squares solution that fixes what the design leaves free: the identifiable
     parameters as `weighted_lstsq` fits them, the free directions resolved by the smallest norm of
     the columns not `preferred` (in units of their weighted column norms).

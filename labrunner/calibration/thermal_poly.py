@@ -165,8 +165,7 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0,
         block = np.repeat(np.arange(4), order + 1)
         keep = (block == 0) | (power <= 1)
         raw = np.zeros_like(raw)
-        raw[keep] = gauge_lstsq(x[:, keep], target, records.duration_s, preferred=block[keep] == 0,
-                                identifiable=fit.identifiable[keep])
+        raw[keep] = gauge_lstsq(x[:, keep], target, records.duration_s, preferred=block[keep] == 0)
         combined.append(_combined_sentence(triad, records, order, t_ref_c, whole))
     # Back from the scaled variable to (T - t_ref)^k.
     conv = np.tile(t_scale ** -np.arange(order + 1.0), 4)
