@@ -19,6 +19,7 @@ from labrunner.errors import UserError
 __all__ = ["COLUMNS", "ACCEL_COLUMNS", "GYRO_COLUMNS", "OUTPUT_COLUMNS", "read_campaign", "write_campaign"]
 # Columns that must hold a number on every row; chamber_c may be empty (no chamber).
 REQUIRED_NUMERIC = ("t_s", "imu_temp_c", "table_rate_dps") + OUTPUT_COLUMNS
+POWER_ON = "power_on"  # optional column: 1 on the first row after a real power-on, else 0
 
 
 class CampaignDataError(UserError, ValueError):
@@ -117,6 +118,14 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
         i = int(back[0]) + 1
         raise CampaignDataError(label, f"time goes backwards within run {run[i]} ({t[i - 1]} then {t[i]})",
                                 _line(i, from_csv), "t_s")
+    if POWER_ON in raw.columns:  # optional (docs/design.md, "The campaign CSV"): 1 on a real power-on's first row
+        text = raw[POWER_ON].astype(str).str.strip()
+        ok = text.isin(["0", "1", "0.0", "1.0", "True", "False", "true", "false"]).to_numpy()
+        if not ok.all():
+            i = int(np.flatnonzero(~ok)[0])
+            raise CampaignDataError(label, f"{text.iloc[i]!r} is not 0 or 1", _line(i, from_csv), POWER_ON)
+        out[POWER_ON] = text.isin(["1", "1.0", "True", "true"]).to_numpy().astype(np.int64)
+        return out[list(COLUMNS) + [POWER_ON]]
     return out[list(COLUMNS)]
 
 
@@ -125,4 +134,5 @@ def write_campaign(frame: pd.DataFrame, path: str | Path) -> None:
     missing = [c for c in COLUMNS if c not in frame.columns]
     if missing:
         raise ValueError("cannot write campaign CSV: missing column(s) " + ", ".join(missing))
-    frame.loc[:, list(COLUMNS)].to_csv(path, index=False, float_format="%.9g")
+    columns = list(COLUMNS) + ([POWER_ON] if POWER_ON in frame.columns else [])
+    frame.loc[:, columns].to_csv(path, index=False, float_format="%.9g")

@@ -55,7 +55,8 @@ class Blocks:
 
 
 def make_blocks(meas: Measurements, block_s: float | None = None, temp_step_c: float = 0.8,
-                target_blocks: int = 3000) -> Blocks:
+                target_blocks: int = 3000, cut_every_s: float | None = None,
+                elapsed_s: np.ndarray | None = None) -> Blocks:
     """Cut the rows into blocks (see module docstring)."""
     n = len(meas)
     # Measurements.__post_init__ fills the per-row weights and spacings when they are not given.
@@ -86,6 +87,9 @@ def make_blocks(meas: Measurements, block_s: float | None = None, temp_step_c: f
 
     new = hard.copy()
     new[1:] |= (t_bin[1:] != t_bin[:-1]) | (travel_bin[1:] != travel_bin[:-1])
+    if cut_every_s and elapsed_s is not None:  # never across a long held-out stretch's edge
+        stretch = np.floor(elapsed_s / cut_every_s).astype(np.int64)
+        new[1:] |= stretch[1:] != stretch[:-1]
     start = np.flatnonzero(new)
     count = np.diff(np.append(start, n))
     weight = np.add.reduceat(meas.row_weight, start) if n else np.zeros(0)

@@ -79,9 +79,13 @@ def handler(args: argparse.Namespace) -> int:
             written = write_report(result, args.report)
         except OSError as exc:
             raise UserError(f"cannot write the report to {args.report}: {exc.strerror}") from None
-    lines = [f"verdict: {result.verdict}"]
+    lines = [f"verdict: {result.verdict}" + (" (uncertain)" if result.verdict_uncertain else "")]
+    if result.verdict_note:
+        lines.append(f"  {result.verdict_note}")
     for f in result.findings:
         conf = f" (confounded with {', '.join(f.confounded_with)})" if f.confounded_with else ""
+        if f.stability is not None:
+            conf += f", selected on {f.stability.selected_share:.0%} of resamples"
         lines.append(f"  {f.status:11s} {f.cause:26s} {', '.join(f.channels)}: held-out RMS "
                      f"-{f.gain.improvement_pct:.1f} %{conf}")
     lines.append(f"json: {json_out}")

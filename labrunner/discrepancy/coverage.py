@@ -41,6 +41,10 @@ class Coverage:
     orientation_changes_without_power_on: int
     power_ons_within_an_orientation: int
     temperature_quantum_c: float | None
+    temperature_jitter_c: float = 0.0
+    temperature_smoothing_s: float = 0.0
+    power_on_source: str = "column"  # "column" (power_on column or store events) or "assumed" (run changes)
+    run_changes_without_power_on: int = 0
     not_identifiable: list[str] = field(default_factory=list)
     excluded: dict[str, set[str]] = field(default_factory=dict)  # cause -> channels it cannot be tested on
     notes: list[str] = field(default_factory=list)
@@ -61,6 +65,10 @@ class Coverage:
             "orientation_changes_without_power_on": self.orientation_changes_without_power_on,
             "power_ons_within_an_orientation": self.power_ons_within_an_orientation,
             "temperature_quantum_c": self.temperature_quantum_c,
+            "temperature_jitter_c": round(self.temperature_jitter_c, 4),
+            "temperature_smoothing_s": round(self.temperature_smoothing_s, 1),
+            "power_ons": {"count": self.runs, "source": self.power_on_source,
+                          "run_changes_without_power_on": self.run_changes_without_power_on},
             "notes": self.notes,
         }
 
@@ -84,7 +92,9 @@ def assess(meas: Measurements) -> Coverage:
         max_temperature_rate_c_per_min=float(np.percentile(np.abs(dtdt), 99.5)), branch_overlap_c=overlap,
         orientation_changes_without_power_on=int(np.setdiff1d(orient_change, run_change).size),
         power_ons_within_an_orientation=int(np.setdiff1d(run_change, orient_change).size),
-        temperature_quantum_c=meas.temperature_quantum_c,
+        temperature_quantum_c=meas.temperature_quantum_c, temperature_jitter_c=meas.temperature_jitter_c,
+        temperature_smoothing_s=meas.temperature_smoothing_s, power_on_source=meas.power_on_source,
+        run_changes_without_power_on=meas.continuous_run_changes,
     )
     _judge(cov, present)
     return cov
@@ -156,6 +166,19 @@ def _judge(cov: Coverage, present: list[int]) -> None:
     if cov.orientation_changes_without_power_on == 0 and cov.runs > 1 and len(present) > 1:
         cov.notes.append("every orientation change coincides with a power-on: per-orientation effects "
                          "(g-sensitivity, accelerometer squared-force) are also explained by per-run offsets")
-    if cov.temperature_quantum_c:
+    if cov.power_on_source == "assumed":
+        cov.notes.append(
+            f"power-ons assumed: the data has no power_on column, so each change of run after a gap in time was "
+            f"taken as a power-on ({cov.runs - 1} after the first row)"
+            + (f"; {cov.run_changes_without_power_on} change(s) of run without a gap were taken as one continuous "
+               "recording (time since power-on runs on)" if cov.run_changes_without_power_on else ""))
+    elif cov.run_changes_without_power_on:
+        cov.notes.append(f"{cov.run_changes_without_power_on} change(s) of run without a power_on mark: one "
+                         "continuous recording there (time since power-on runs on)")
+    if cov.temperature_smoothing_s:
+        cov.notes.append(f"imu_temp_c jitters by {cov.temperature_jitter_c:.3f} degC from row to row: heating/"
+                         f"cooling, dT/dt and the errors' temperature use its centred "
+                         f"{cov.temperature_smoothing_s:.0f} s moving mean")
+    elif cov.temperature_quantum_c:
         cov.notes.append(f"imu_temp_c is quantised to {cov.temperature_quantum_c:g} degC: heating/cooling is "
                          "judged on the de-dithered temperature")

@@ -37,6 +37,27 @@ def segment_length(blocks: Blocks, n_folds: int = 5, longest_s: float = 120.0) -
     return float(np.clip(np.median(spans) / (2 * n_folds), 30.0, longest_s))
 
 
+def long_segment_length(span_s: float, n_folds: int = 5, longest_s: float = 3600.0) -> float:
+    """Long hold-out stretch: an hour, or shorter when the record (`span_s` of campaign time) does
+    not span every fold twice. Held out for an hour, a stretch's drift level is poorly predicted
+    from its sides, so effects slower than the short stretches (per-run offsets, slow trends) can
+    earn their place there."""
+    return float(min(longest_s, max(span_s / (2 * n_folds), 1.0)))
+
+
+def elapsed_s(t_s: np.ndarray) -> np.ndarray:
+    """(N,) campaign time since the first row (a clock restarted per run counts on)."""
+    t = np.asarray(t_s, dtype=float)
+    return np.cumsum(np.maximum(np.diff(t, prepend=t[:1]), 0.0))
+
+
+def long_folds(blocks: Blocks, row_elapsed_s: np.ndarray, n_folds: int, segment_s: float) -> np.ndarray:
+    """(M,) fold of each block: `segment_s` stretches of campaign time (across runs), dealt out in
+    turn; a block belongs to the stretch of its first row (`make_blocks` cuts blocks there)."""
+    seg = np.floor(row_elapsed_s[blocks.start] / segment_s).astype(np.int64)
+    return (seg % n_folds).astype(np.int64)
+
+
 def time_folds(blocks: Blocks, n_folds: int = 5, segment_s: float | None = None) -> np.ndarray:
     """(M,) fold of each block: `segment_s` stretches within runs, dealt out in turn."""
     if segment_s is None:

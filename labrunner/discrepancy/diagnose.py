@@ -21,18 +21,21 @@ from labrunner.imu.effects import drift_effect
 from labrunner.imu.model import ImuModel
 
 from .advice import separating_measurement
+from .allan import TARGET as ALLAN_TARGET
+from .allan import AllanCurve, NoiseFit, fit_noise
 from .blas import single_threaded_blas
 from .blocks import make_blocks
 from .coverage import Coverage, assess
-from .crossval import segment_length, time_folds
+from .crossval import elapsed_s, long_folds, long_segment_length, segment_length, time_folds
 from .drift import build_drift_filter
 from .engine import Engine
 from .envelope import envelope_columns
-from .extend import ChannelNoise, build_model, check_model, noise_density, row_spacing, white_rms
+from .extend import ChannelNoise, build_model, check_model, noise_density, row_spacing, white_rms, with_noise
 from .measurements import Measurements
 from .model import BASELINE, DesignBuilder, Selected, Spec, channel_list, design_derivative, replace, without
 from .residuals import residual_table
 from .selection import Evaluation, Searcher, SelectionResult
+from .stability import LEVEL, Stability, finding_stability, resamples, stability
 from .terms import TermContext, TermFit, candidate_terms
 
 _MIN_BLOCKS = 40
@@ -100,11 +103,13 @@ class Finding:
     confounded_with: list[str] = field(default_factory=list)
     evidence: str = ""
     effect: dict[str, Any] = field(default_factory=dict)  # the sims effect reproducing it
+    stability: Stability | None = None  # how often it is selected on resampled time stretches
 
     def to_json(self) -> dict[str, Any]:
         return {"cause": self.cause, "channels": self.channels, "parameters": _round(self.parameters),
                 "gain": self.gain.to_json(), "confounded_with": self.confounded_with, "evidence": self.evidence,
-                "status": self.status, "evidence_score": round(self.evidence_score, 1)}
+                "status": self.status, "evidence_score": _finite(self.evidence_score),
+                "stability": self.stability.to_json() if self.stability else None}
 
 
 @dataclass
@@ -112,7 +117,8 @@ class Diagnosis:
     verdict: str
     findings: list[Finding]
     not_identifiable: list[str]
-    gain: Gain  # baseline against the extended model, every channel
+    gain: Gain  # baseline against the extended model, every channel (short held-out stretches)
+    gain_long: Gain  # the same on hour-long held-out stretches
     noise: dict[str, ChannelNoise]
     coverage: Coverage
     candidates: list[dict[str, Any]]
@@ -122,6 +128,13 @@ class Diagnosis:
     method: dict[str, Any]
     seconds: float
     model_path: str | None = None
+    verdict_note: str = ""  # why the verdict is uncertain ("" when it is stable)
+    allan: NoiseFit | None = None  # Allan deviation of the residuals and the noise model fitted to it
+    runner_up: dict[str, Any] | None = None  # the best cause not selected and how often it would be
+
+    @property
+    def verdict_uncertain(self) -> bool:
+        return bool(self.verdict_note)
 
     @property
     def selected(self) -> list[Finding]:
@@ -130,9 +143,13 @@ class Diagnosis:
     def to_json(self) -> dict[str, Any]:
         return {
             "verdict": self.verdict,
+            "verdict_uncertain": self.verdict_uncertain,
+            "verdict_note": self.verdict_note,
+            "runner_up": self.runner_up,
             "findings": [f.to_json() for f in self.findings],
             "not_identifiable": self.not_identifiable,
             "gain": self.gain.to_json(),
+            "gain_long_blocks": self.gain_long.to_json(),
             "extended_model": {
                 "path": self.model_path,
                 "effects": sorted(self.model.effects),
@@ -141,6 +158,7 @@ class Diagnosis:
             "noise": {c: {"white_rms": _sig(n.white_rms), "noise_density": _sig(n.noise_density),
                           "drift_per_sqrt_s": _sig(n.drift_per_sqrt_s), "drift_evidence": round(n.drift_evidence, 1)}
                       for c, n in self.noise.items()},
+            "allan": _allan_json(self.allan),
             "coverage": self.coverage.to_json(),
             "candidates": self.candidates,
             "method": self.method,
@@ -162,7 +180,9 @@ class _Diagnoser:
         self.meas = meas
         self.options = options
         self.coverage = assess(meas)
-        self.blocks = make_blocks(meas, options.block_s)
+        elapsed = elapsed_s(meas.t_s)
+        self.long_segment_s = long_segment_length(float(elapsed[-1]) if elapsed.size else 0.0, options.n_folds)
+        self.blocks = make_blocks(meas, options.block_s, cut_every_s=self.long_segment_s, elapsed_s=elapsed)
         if len(self.blocks) < _MIN_BLOCKS:
             raise TooLittleData(f"too little data to diagnose: {len(meas)} rows over {_logged_s(meas):.0f} s make "
                                 f"{len(self.blocks)} blocks of steady conditions; the diagnosis needs at least "
@@ -185,11 +205,16 @@ class _Diagnoser:
                 f"out {self.segment_s:.0f} s stretches of each run in turn and needs data in at least {_MIN_FOLDS} "
                 f"of them: more than {self.segment_s:.0f} s in a run, or several runs (a campaign as `labrunner "
                 "export` writes it)")
-        self.engine = Engine(self.builder, self.blocks, self.blocks.mean(err), build_drift_filter(self.blocks),
-                             folds, options.n_folds)
+        drift = build_drift_filter(self.blocks)
+        self.engine = Engine(self.builder, self.blocks, self.blocks.mean(err), drift, folds, options.n_folds)
+        self.long_engine = Engine(self.builder, self.blocks, self.engine.y, drift,
+                                  long_folds(self.blocks, elapsed, options.n_folds, self.long_segment_s),
+                                  options.n_folds)
         self.searcher = Searcher(self.engine, self.terms, self.allowed, options.min_evidence, options.confound_margin,
                                  min_rms_gain=options.min_rms_gain, floors=self._floors(),
-                                 term_floors=self._rate_floors(options.rate_accuracy))
+                                 term_floors=self._rate_floors(options.rate_accuracy),
+                                 # hour-long stretches judge causes only in a record of ten hours or more
+                                 long_engine=self.long_engine if self.long_segment_s >= 3600.0 else None)
 
     def _drift(self, spec: Spec, envelope: dict[str, np.ndarray]) -> dict[str, int]:
         """Drift strength per channel with the selected causes switched on for every channel they
@@ -231,8 +256,10 @@ class _Diagnoser:
         result = self.searcher.run(rho_select, self.options.max_causes, lambda s: self._drift(s, envelope))
         spec = result.spec
         rho = result.rho  # the drift strength the causes were judged at
-        systems = {c: eng.system(spec, c, rho[c]) for c in CHANNELS}
-        base_systems = {c: eng.system((), c, rho[c]) for c in CHANNELS}
+        # The model is fitted by least squares (the drift judged the causes, it does not take
+        # what temperature explains); `gain` and the held-out RMS use the same fit.
+        systems = {c: eng.prediction_system(spec, c) for c in CHANNELS}
+        base_systems = {c: eng.prediction_system((), c) for c in CHANNELS}
 
         findings = self._findings(result, spec, rho, systems)
         noise = self._noise(spec)
@@ -243,11 +270,17 @@ class _Diagnoser:
         if walk and drift is not None:  # the drift of the noise model, as the simulator's effect
             effects[drift.name] = drift.from_drift(walk)
         model = build_model(coefficients, effects, noise)
+        noise_fit = self._noise_fit(model, noise)
+        if noise_fit is not None and noise_fit.finding is not None:
+            model = noise_fit.model  # the fitted noise model replaces the drift-only one
         base_coef = {c: eng.coefficients((), base_systems[c])[0] for c in CHANNELS}
         baseline_model = build_model(base_coef, {}, noise)
 
         gain = Gain({c: eng.heldout_rms((), base_systems[c]) for c in CHANNELS},
                     {c: eng.heldout_rms(spec, systems[c]) for c in CHANNELS})
+        long = self.long_engine
+        gain_long = Gain({c: long.heldout_rms((), long.prediction_system((), c)) for c in CHANNELS},
+                         {c: long.heldout_rms(spec, long.prediction_system(spec, c)) for c in CHANNELS})
         residuals = residual_table(self.meas, self.blocks,
                                    np.column_stack([eng.residual((), base_systems[c]) for c in CHANNELS]),
                                    np.column_stack([eng.residual(spec, systems[c]) for c in CHANNELS]))
@@ -255,8 +288,14 @@ class _Diagnoser:
         notes += [n for name, t in self.terms.items() if self.allowed.get(name) for n in t.notes(self.ctx)]
         not_identifiable = list(self.coverage.not_identifiable) + notes + self._aliased(result)
         verdict = findings[0].cause if findings and findings[0].status == "selected" else "none"
+        runner_up = self._stability(result, spec, rho, findings)
+        note = _verdict_note(verdict, findings, runner_up)
+        if noise_fit is not None and noise_fit.finding is not None:
+            findings.append(noise_fit.finding)  # among the findings, never the verdict
         return Diagnosis(
-            verdict=verdict, findings=findings, not_identifiable=not_identifiable, gain=gain, noise=noise,
+            verdict_note=note, runner_up=runner_up, allan=noise_fit.fit if noise_fit else None,
+            verdict=verdict, findings=findings, not_identifiable=not_identifiable, gain=gain, gain_long=gain_long,
+            noise=noise,
             coverage=self.coverage, candidates=self._candidates(result), model=model,
             model_check={"baseline": check_model(baseline_model, self.meas), "extended": check_model(model, self.meas)},
             residuals=residuals, method=self._method(), seconds=time.perf_counter() - started)
@@ -267,7 +306,7 @@ class _Diagnoser:
         term = self.terms[sel.term]
         fit = TermFit(theta=sel.params, coef={}, cov={}, schur={})
         for c in channel_list(sel.channels):
-            system = self.engine.system(spec, c, rho[c])
+            system = self.engine.prediction_system(spec, c)
             if term.moves_baseline_temperature:
                 fit.coef[c] = np.zeros(0)
                 continue
@@ -287,12 +326,14 @@ class _Diagnoser:
             params, effect = self._fit_term(spec, sel, rho)
             channels = channel_list(sel.channels)
             rest = without(spec, sel.term)
-            own = self.searcher.evaluate(rest, self.searcher.systems(rest, rho), rho, sel.term, sel.params)
+            own = self.searcher.own_evaluation(spec, rho, sel)
             term = self.terms[sel.term]
             alts = confounds[sel.term]
+            stretches = "hour-long" if own.holdout == "long" else f"{self.segment_s:.0f} s"
             evidence = (f"{term.what}. Held-out evidence {own.score:.0f} (drift-whitened 2*delta-log-likelihood on "
-                        f"time blocks held out, after a log(M) charge per parameter; > {self.options.min_evidence:g} "
-                        f"counts) on " + ", ".join(f"{c} {own.delta.get(c, 0.0):.0f}" for c in channels) + ".")
+                        f"{stretches} time blocks held out, after a log(M) charge per parameter; > "
+                        f"{self.options.min_evidence:g} counts) on "
+                        + ", ".join(f"{c} {own.delta.get(c, 0.0):.0f}" for c in channels) + ".")
             for alt in alts:
                 evidence += (f" The data cannot tell it from {alt.alternative.term}, which explains "
                              f"{alt.fit_alternative:.0f} against {alt.fit_selected:.0f}: "
@@ -317,6 +358,60 @@ class _Diagnoser:
                     + ".")
         return Finding(ev.term, channels, params, self._gain(rest, alt_spec, channels, rho), ev.score, "alternative",
                        [sel.term], evidence, effect)
+
+    # -- stability -------------------------------------------------------------------------------
+
+    def _stability(self, result: SelectionResult, spec: Spec, rho: dict[str, int],
+                   findings: list[Finding]) -> dict[str, Any] | None:
+        """Each selected finding's share of resampled time stretches on which it is selected; and
+        the best cause not selected, with its share (a verdict `none` can be marginal too)."""
+        stretch = np.floor(elapsed_s(self.meas.t_s)[self.blocks.start] / self.long_segment_s).astype(np.int64)
+        masks = resamples(stretch)
+        by_term = {s.term: s for s in spec}
+        for f in findings:
+            if f.status == "selected" and f.cause in by_term:
+                own = self.searcher.own_evaluation(spec, rho, by_term[f.cause])
+                f.stability = finding_stability(self.searcher, spec, rho, by_term[f.cause], own.holdout, masks)
+        last = [ev for ev in (result.steps[-1].evaluations if result.steps else [])
+                if ev.term not in by_term and ev.delta]
+        if not last:
+            return None
+        best = max(last, key=lambda ev: max(ev.delta.values()))
+        channels = [c for c, d in best.delta.items() if d > 0] or [max(best.delta, key=best.delta.__getitem__)]
+        share = stability(self.searcher, spec, rho, Selected.make(best.term, best.theta, channels), best.holdout,
+                          masks)
+        return {"cause": best.term, "channels": channel_list(set(channels)), "evidence_score": _finite(best.score),
+                "stability": {"selected_share": round(share.selected_share, 2), "subsamples": share.subsamples}}
+
+    # -- the noise ------------------------------------------------------------------------------
+
+    def _noise_fit(self, model: ImuModel, noise: dict[str, ChannelNoise]) -> _NoiseResult | None:
+        """Allan deviation of the residual under the extended model, the noise model fitted to it;
+        a `noise` finding when the simulator's noise as it stood (white only) misses the measured
+        Allan deviation by more than the target at some octave."""
+        predicted, _ = model.deterministic_error(self.meas.imu_inputs())
+        white = np.array([noise[c].noise_density for c in CHANNELS])
+        fit = fit_noise(self.meas, self.meas.error - predicted, np.nan_to_num(white))
+        if fit is None:
+            return None
+        off = [c for c in CHANNELS if fit.mismatch_before[c] > ALLAN_TARGET]
+        if not off:
+            return _NoiseResult(fit, None, model)
+        extended = with_noise(model, np.array([fit.white[c] for c in CHANNELS]),
+                              np.array([fit.bias_instability[c] for c in CHANNELS]),
+                              np.array([fit.rate_random_walk[c] for c in CHANNELS]))
+        gain = AllanGain(dict(fit.mismatch_before), dict(fit.mismatch_after))
+        taus = fit.measured.tau_s
+        evidence = (f"the simulator's noise model (white noise only) departs from the Allan deviation of the "
+                    f"residuals by up to {max(fit.mismatch_before.values()):.0%} over the octaves of tau from "
+                    f"{taus[0]:g} s to {taus[-1]:g} s; with the fitted white noise, bias instability and rate "
+                    f"random walk by up to {max(fit.mismatch_after.values()):.0%} (target {ALLAN_TARGET:.0%}; the "
+                    "top octaves rest on few independent differences, so the measured curve itself scatters there)")
+        parameters = {"white": fit.white, "bias_instability": fit.bias_instability,
+                      "rate_random_walk": fit.rate_random_walk}
+        finding = Finding("noise", off, parameters, gain, float("nan"), "noise", [], evidence,
+                          {k: v for k, v in extended.effects.items() if k in ("bias_instability", "bias_random_walk")})
+        return _NoiseResult(fit, finding, extended)
 
     # -- the rest of the report ------------------------------------------------------------------
 
@@ -366,10 +461,59 @@ class _Diagnoser:
             "criterion": "held-out (time-block cross-validated) -2 log-likelihood of drift-whitened residuals "
                          "+ log(M) per identifiable coefficient; a cause must improve it by more than min_evidence",
             "folds": self.options.n_folds, "holdout_segment_s": round(self.segment_s, 1),
+            "holdout_long_segment_s": round(self.long_segment_s, 1),
+            "fit": "deterministic terms by weighted least squares on block means (the drift model weighs the "
+                   "evidence only)",
             "blocks": len(self.blocks), "block_s": round(self.blocks.block_s, 2),
             "penalty_per_parameter": round(self.engine.penalty, 3), "min_evidence": self.options.min_evidence,
             "confound_margin": self.options.confound_margin,
         }
+
+
+@dataclass
+class _NoiseResult:
+    fit: NoiseFit
+    finding: Finding | None
+    model: ImuModel  # the extended model with the fitted noise model (when there is a finding)
+
+
+class AllanGain(Gain):
+    """The noise finding's gain: the simulated against the measured Allan deviation, as the largest
+    relative departure over the octaves, before and after (held-out RMS says nothing of noise)."""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"allan_mismatch_before": _round(self.heldout_rms_before),
+                "allan_mismatch_after": _round(self.heldout_rms_after),
+                "improvement_pct": round(self.improvement_pct, 2),
+                "improvement_pct_by_channel": {c: round(v, 2) for c, v in self.improvement_by_channel.items()}}
+
+
+def _allan_json(fit: NoiseFit | None) -> dict[str, Any] | None:
+    if fit is None:
+        return None
+    def curve(c: AllanCurve) -> dict[str, list[float]]:
+        return {ch: [_sig(float(v), 4) for v in c.adev[:, i]] for i, ch in enumerate(CHANNELS)}
+    return {"tau_s": [float(t) for t in fit.measured.tau_s], "measured": curve(fit.measured),
+            "simulated_before": curve(fit.before), "simulated_after": curve(fit.after),
+            "mismatch_before": _round(fit.mismatch_before), "mismatch_after": _round(fit.mismatch_after),
+            "target": ALLAN_TARGET,
+            "parameters": {"white": _round(fit.white), "bias_instability": _round(fit.bias_instability),
+                           "rate_random_walk": _round(fit.rate_random_walk)}}
+
+
+def _verdict_note(verdict: str, findings: list[Finding], runner_up: dict[str, Any] | None) -> str:
+    """Why the verdict is uncertain, or "" when every selected finding and the verdict are stable."""
+    parts = []
+    for f in findings:
+        if f.status == "selected" and f.stability is not None and f.stability.uncertain:
+            parts.append(f"{f.cause} is selected on only {f.stability.selected_share:.0%} of "
+                         f"{f.stability.subsamples} resampled time stretches (stable from {LEVEL:.0%})")
+    if runner_up and runner_up["stability"]["selected_share"] >= 1.0 - LEVEL:
+        parts.append(f"{runner_up['cause']}, not selected, would be on {runner_up['stability']['selected_share']:.0%} "
+                     "of them")
+    if not parts:
+        return ""
+    return f"verdict {verdict} is uncertain: " + "; ".join(parts)
 
 
 def _sig(v: float, digits: int = 6) -> float:

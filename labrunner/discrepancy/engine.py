@@ -177,6 +177,22 @@ class Engine:
         zz = np.stack([zf.T @ zf for zf in w.folds])
         return cross_validate(g_full, extend_gram(system.g_fold, az_fold, zz), self.m)
 
+    def block_contributions(self, system: ChannelSystem) -> np.ndarray:
+        """(M,) each block's share of the held-out score `system.cv.sse` (before the clip at 0).
+
+        Fold f's score is Q_all(b_f) - Q_f(b_f), sums of squared whitened residuals over all
+        blocks and over its training blocks; split by block, the shares of any subset of blocks
+        (a resample of time stretches) give that subset's held-out score without refitting."""
+        y_full = system.y.full[:, 0]
+        out = np.zeros(self.m)
+        for f in range(self.n_folds):
+            beta = system.cv.betas[f]
+            r_full = y_full - system.x.full @ beta
+            out += r_full * r_full
+            r_fold = system.y.folds[f][:, 0] - system.x.folds[f] @ beta
+            out[self.filters(system.rho_index).train_rows[f]] -= r_fold * r_fold
+        return out
+
     # -- fitted quantities -------------------------------------------------------------------
 
     def coefficients(self, spec: Spec, system: ChannelSystem) -> tuple[np.ndarray, float]:
@@ -212,22 +228,41 @@ class Engine:
         beta, _ = self.coefficients(spec, system)
         return self.y[:, CHANNELS.index(system.channel)] - self.builder.design(spec, system.channel).x @ beta
 
+    def prediction_system(self, spec: Spec, channel: str) -> ChannelSystem:
+        """The system the deterministic terms are fitted in for prediction: weighted least squares
+        (no drift whitening). Whitened by a strong drift model, the slow part of what temperature
+        explains is left to the drift level, and the fit predicts held-out rows worse than a plain
+        least-squares fit; the drift model weighs the evidence, this fit makes the model."""
+        return self.system(spec, channel, 0)
+
     def heldout_rms(self, spec: Spec, system: ChannelSystem) -> float:
-        """Held-out RMS over the raw rows of measured minus model: each row predicted by the GLS
-        fit on the other folds (its constant from their raw residual mean)."""
-        c = CHANNELS.index(system.channel)
-        x = self.builder.design(spec, system.channel).x
-        n = self.blocks.weight.astype(float)
-        betas = system.cv.betas
-        resid = self.y[:, c][:, None] - x @ betas.T  # (M, K) block-level raw residual of each fold's fit
-        weighted = (n[:, None] * resid)
-        shift = np.empty(self.n_folds)
+        """Held-out RMS over the raw rows of measured minus model: each row predicted by the
+        weighted least-squares fit of the block means on the other folds.
+
+        A term whose columns the training folds never excite (the offset of a power-on held out
+        whole) predicts nothing there: that fold is fitted without it, so an unseen power-on
+        gets the other runs' mean offset, as a simulator drawing a new one would on average."""
+        channel = system.channel
+        c = CHANNELS.index(channel)
+        design = self.builder.design(spec, channel)
+        x = design.x
+        w = np.sqrt(self.blocks.weight.astype(float))
+        xw = x * w[:, None]
+        yw = self.y[:, c] * w
+        full_norm = np.einsum("mp,mp->p", xw, xw)
+        betas = np.zeros((self.n_folds, x.shape[1]))
         for k in range(self.n_folds):
             train = self.folds != k
-            shift[k] = weighted[train, k].sum() / n[train].sum()
-        pred = self.builder.predict_rows(spec, system.channel, betas, system.slices)  # (N, K)
+            keep = np.ones(x.shape[1], dtype=bool)
+            norm = np.einsum("mp,mp->p", xw[train], xw[train])
+            for name, sl in design.slices.items():
+                if name != BASELINE and np.any((norm[sl] <= 1e-12 * full_norm[sl]) & (full_norm[sl] > 0)):
+                    keep[sl] = False
+            a = xw[train][:, keep]
+            betas[k, keep] = solve(a.T @ a, a.T @ yw[train])
+        pred = self.builder.predict_rows(spec, channel, betas, design.slices)  # (N, K)
         fold = self.folds[self._row_block]
-        r = self.builder.ctx.meas.error[:, c] - pred[np.arange(pred.shape[0]), fold] - shift[fold]
+        r = self.builder.ctx.meas.error[:, c] - pred[np.arange(pred.shape[0]), fold]
         return float(np.sqrt(np.mean(r * r)))
 
 

@@ -78,3 +78,20 @@ def check_model(model: ImuModel, meas: Measurements) -> dict[str, float]:
     predicted, _ = model.deterministic_error(meas.imu_inputs())
     resid = meas.error - predicted
     return {c: float(np.sqrt(np.mean(resid[:, i] ** 2))) for i, c in enumerate(CHANNELS)}
+
+
+def with_noise(model: ImuModel, white: np.ndarray, instability: np.ndarray | None,
+               walk: np.ndarray | None) -> ImuModel:
+    """The model with its noise model replaced: white density per triad (the mean of its channels'),
+    and, when given, bias instability B and rate random walk K per channel (sensor units)."""
+    import copy
+
+    out = copy.deepcopy(model)
+    out.accel.noise_density = float(np.mean(white[:3]))
+    out.gyro.noise_density = float(np.mean(white[3:]))
+    effects: dict[str, Any] = {"bias_instability": None, "bias_random_walk": None}
+    if instability is not None and np.any(instability > 0):
+        effects["bias_instability"] = {"b": {c: float(v) for c, v in zip(CHANNELS, instability)}}
+    if walk is not None and np.any(walk > 0):
+        effects["bias_random_walk"] = {"sigma_per_sqrt_s": {c: float(v) for c, v in zip(CHANNELS, walk)}}
+    return out.with_effects(**effects)

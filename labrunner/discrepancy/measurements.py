@@ -16,7 +16,14 @@ from labrunner.campaign_csv import OUTPUT_COLUMNS, read_campaign
 from labrunner.domain import CHANNELS, UP_VECTORS, orientation_index
 from labrunner.imu.model import ImuInputs
 
-from .temperature import dequantize, temperature_rate
+from .temperature import (
+    dequantize,
+    is_jittery,
+    smooth_temperature,
+    smoothing_rows,
+    temperature_jitter,
+    temperature_rate,
+)
 
 # Below this quantum the rounding error is negligible against the model's temperature slopes.
 _MIN_COARSE_QUANTUM_C = 0.05
@@ -27,14 +34,14 @@ class Measurements:
     """One campaign, rows in time order within each run."""
 
     t_s: np.ndarray  # (N,) s
-    run: np.ndarray  # (N,) power-on counter
+    run: np.ndarray  # (N,) power-on counter (0, 1, ...: the rows since one power-on)
     orientation: np.ndarray  # (N,) index into labrunner.domain.ORIENTATIONS
     temp_c: np.ndarray  # (N,) IMU temperature (de-quantised when the log is coarse)
     chamber_c: np.ndarray  # (N,) chamber air, NaN when not logged
     table_rate_dps: np.ndarray  # (N,)
     force_g: np.ndarray  # (N, 3) reference specific force, body frame
     rate_dps: np.ndarray  # (N, 3) reference angular rate, body frame
-    t_on_s: np.ndarray  # (N,) time since the run's first row
+    t_on_s: np.ndarray  # (N,) time since the power-on (the first row after it)
     output: np.ndarray  # (N, 6) measured, channel order labrunner.domain.CHANNELS
     row_dt_s: float  # typical spacing of consecutive rows within a run
     temperature_quantum_c: float | None  # the logger's temperature step, when it is coarse
@@ -45,6 +52,13 @@ class Measurements:
     # its spacing is that of its own kind of row.
     row_weight: np.ndarray | None = None  # (N,), ones when all rows are alike
     row_spacing_s: np.ndarray | None = None  # (N,)
+    # Where the power-ons come from: "column" (the log's power_on column, or a store's power-on
+    # events) or "assumed" (a change of `run` after a gap in time; none without a gap).
+    power_on_source: str = "column"
+    run_label: np.ndarray | None = None  # (N,) the log's `run` column
+    continuous_run_changes: int = 0  # changes of `run` not taken as power-ons (no gap, or no power_on mark)
+    temperature_jitter_c: float = 0.0  # row-to-row jitter of a jittering temperature sensor (0: not jittery)
+    temperature_smoothing_s: float = 0.0  # the centred moving mean it was smoothed with (0: not smoothed)
     _error: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -96,10 +110,27 @@ class Measurements:
         up = UP_VECTORS[orient]
         table = frame["table_rate_dps"].to_numpy(dtype=float)
         temp = frame["imu_temp_c"].to_numpy(dtype=float)
-        first = pd.Series(t).groupby(run).transform("min").to_numpy()
+        label = run
+        power, source = _power_ons(t, run, frame["power_on"].to_numpy() if "power_on" in frame.columns else None)
+        segment = np.cumsum(power) - 1
+        # A power-on's rows keep the run label of its first row (labels name runs in the report and
+        # in the extended model's pinned offsets); numbered afresh only if labels repeat.
+        labels = label[np.flatnonzero(power)]
+        run = labels[segment] if np.unique(labels).size == labels.size else segment + 1
+        first = t[np.flatnonzero(power)][segment]
+        label_changes = int(np.sum(label[1:] != label[:-1]))
+        continuous = int(np.sum((label[1:] != label[:-1]) & ~power[1:]))
         quantum = _quantum(temp)
         logged = None
-        if quantum is not None:
+        jitter, reversals = temperature_jitter(t, temp, run)
+        smoothing_s = 0.0
+        if is_jittery(reversals):
+            # A jittering sensor (quantised or not): the crossings de-quantisation relies on are
+            # noise; a centred moving mean recovers the slow path instead.
+            rows = smoothing_rows(jitter)
+            logged, temp = temp, smooth_temperature(t, temp, run, rows)
+            smoothing_s = rows * _row_spacing(t, run)
+        elif quantum is not None:
             logged, temp = temp, dequantize(t, temp, run, quantum, _step_time(t, temp, run, quantum))
         output = frame.loc[:, list(OUTPUT_COLUMNS)].to_numpy(dtype=float)
         weight, spacing, typical = _row_weights(t, run, output, table)
@@ -108,8 +139,28 @@ class Measurements:
             chamber_c=frame["chamber_c"].to_numpy(dtype=float), table_rate_dps=table,
             force_g=up.copy(), rate_dps=up * table[:, None], t_on_s=t - first,
             output=output, row_dt_s=typical, temperature_quantum_c=quantum, logged_temp_c=logged,
-            row_weight=weight, row_spacing_s=spacing,
+            row_weight=weight, row_spacing_s=spacing, power_on_source=source, run_label=label,
+            continuous_run_changes=continuous if label_changes else 0,
+            temperature_jitter_c=jitter if smoothing_s else 0.0, temperature_smoothing_s=smoothing_s,
         )
+
+
+def _power_ons(t: np.ndarray, run: np.ndarray, column: np.ndarray | None) -> tuple[np.ndarray, str]:
+    """(N,) True on the first row after each power-on, and where that came from.
+
+    The log's `power_on` column says it; without one, a change of `run` is taken for a power-on
+    only where the recording stops (a gap in time, or the clock restarting): a log without gaps
+    is one continuous recording, whatever its run labels (time since power-on runs on)."""
+    power = np.zeros(t.size, dtype=bool)
+    power[:1] = True
+    if column is not None:
+        power |= np.asarray(column, dtype=np.int64) == 1
+        return power, "column"
+    dt = np.diff(t)
+    spacing = _row_spacing(t, run)
+    gap = (dt > max(3.0 * spacing, spacing + 0.5)) | (dt < 0)
+    power[1:] = (run[1:] != run[:-1]) & gap
+    return power, "assumed"
 
 
 def _time_order(t: np.ndarray, run: np.ndarray) -> np.ndarray:

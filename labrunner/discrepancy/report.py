@@ -60,6 +60,8 @@ def write_report(diagnosis: Diagnosis, directory: str | Path) -> list[Path]:
         written.append(_save(per_group_figure(table, "orientation", "orientation (specific force)"),
                              out / "residual_by_orientation.png"))
     written.append(_save(gain_figure(diagnosis), out / "heldout_rms.png"))
+    if diagnosis.allan is not None:
+        written.append(_save(allan_figure(diagnosis), out / "allan_deviation.png"))
     csv = out / "residuals.csv"
     table.to_csv(csv, index=False, float_format="%.9g")
     written.append(csv)
@@ -222,16 +224,44 @@ def gain_figure(diagnosis: Diagnosis) -> Figure:
     return fig
 
 
+def allan_figure(diagnosis: Diagnosis) -> Figure:
+    """Allan deviation of the residuals per channel: measured, and the simulator's before (white noise
+    only) and after (the fitted noise model), both seen through the same fit as the data."""
+    import matplotlib.pyplot as plt
+
+    fit = diagnosis.allan
+    assert fit is not None
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
+    for i, (ax, c) in enumerate(zip(axes.flat, CHANNELS)):
+        k = _SCALE[c]
+        ax.loglog(fit.measured.tau_s, fit.measured.adev[:, i] * k, "o-", color=_BASELINE, label="measured residual")
+        ax.loglog(fit.before.tau_s, fit.before.adev[:, i] * k, ":", color="0.5", label="simulator before (white only)")
+        ax.loglog(fit.after.tau_s, fit.after.adev[:, i] * k, "-", color=_EXTENDED, lw=1.0,
+                  label="simulator after (fitted noise model)")
+        ax.set_title(c)
+        ax.set_ylabel(f"Allan deviation ({_UNITS[c]})")
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("tau (s)")
+    fig.suptitle("Allan deviation of measured minus extended model, and of the simulator's noise")
+    fig.tight_layout(rect=(0.0, 0.08, 1.0, 1.0))
+    _figure_legend(fig, axes)
+    return fig
+
+
 def summary_markdown(diagnosis: Diagnosis, plots: list[str], plot_notes: list[str] | None = None) -> str:
     lines = ["# Diagnosis: what the simulated IMU gets wrong", "",
-             f"**Verdict: {diagnosis.verdict}**", ""]
+             f"**Verdict: {diagnosis.verdict}**" + (" (uncertain)" if diagnosis.verdict_uncertain else ""), ""]
+    if diagnosis.verdict_note:
+        lines += [diagnosis.verdict_note[0].upper() + diagnosis.verdict_note[1:] + ".", ""]
     if diagnosis.findings:
-        lines += ["| cause | status | channels | parameters | held-out RMS gain | confounded with |",
-                  "|---|---|---|---|---|---|"]
+        lines += ["| cause | status | channels | parameters | held-out RMS gain | selected on resamples "
+                  "| confounded with |", "|---|---|---|---|---|---|---|"]
         for f in diagnosis.findings:
+            share = f"{f.stability.selected_share:.0%}" if f.stability else "-"
             lines.append(f"| {f.cause} | {f.status} | {', '.join(f.channels)} "
                          f"| `{_compact(f.to_json()['parameters'])}` "
-                         f"| {f.gain.improvement_pct:.1f} % | {', '.join(f.confounded_with) or '-'} |")
+                         f"| {f.gain.improvement_pct:.1f} % | {share} | {', '.join(f.confounded_with) or '-'} |")
         lines.append("")
         for f in diagnosis.findings:
             lines += [f"- **{f.cause}**: {f.evidence}"]
@@ -253,6 +283,18 @@ def summary_markdown(diagnosis: Diagnosis, plots: list[str], plot_notes: list[st
     for c, n in diagnosis.noise.items():
         drift = f"{n.drift_per_sqrt_s * _SCALE[c]:.3g} {_UNITS[c]}" if n.drift_evidence > 10 else "none detected"
         lines.append(f"| {c} | {n.white_rms * _SCALE[c]:.3g} {_UNITS[c]} | {drift} |")
+    if diagnosis.allan is not None:
+        fit = diagnosis.allan
+        lines += ["", "Allan deviation of the residuals (`allan_deviation.png`), the simulator's noise model fitted "
+                  "to it: white noise density N (one-sided, per sqrt(Hz); the Allan deviation at 1 s of 1 s rows is "
+                  "N / sqrt(2)), bias instability B (Allan floor 0.664 B), rate random walk K (per sqrt(s)); the "
+                  "mismatch is the largest relative departure of the simulated Allan deviation over the octaves.",
+                  "", "| channel | N | B | K | mismatch before | after |", "|---|---|---|---|---|---|"]
+        for c in CHANNELS:
+            k, u = _SCALE[c], _UNITS[c]
+            lines.append(f"| {c} | {fit.white[c] * k:.3g} {u}/sqrt(Hz) | {fit.bias_instability[c] * k:.3g} {u} "
+                         f"| {fit.rate_random_walk[c] * k:.3g} {u}/sqrt(s) | {fit.mismatch_before[c]:.0%} "
+                         f"| {fit.mismatch_after[c]:.0%} |")
     if diagnosis.model_path:
         model = Path(diagnosis.model_path).resolve()
         lines += ["", (f"Extended simulation model: `{diagnosis.model_path}`. To rehearse with it, write "

@@ -61,6 +61,7 @@ class Evaluation:
     added: dict[str, int] = field(default_factory=dict)  # identifiable coefficients added per channel
     channels: list[str] = field(default_factory=list)
     score: float = -np.inf
+    holdout: str = "short"  # the held-out stretches the score was judged on ("short" or "long")
 
     def selected(self) -> Selected:
         return Selected.make(self.term, self.theta, self.channels)
@@ -94,8 +95,11 @@ class Searcher:
                  min_evidence: float = 10.0, confound_margin: float = 10.0, refine_steps: int = 9,
                  min_rms_gain: float = 0.0, floors: dict[str, float] | None = None,
                  term_floors: dict[tuple[str, str], float] | None = None,
-                 confound_extra: int = 4) -> None:
+                 confound_extra: int = 4, long_engine: Engine | None = None) -> None:
         self.engine = engine
+        # The same fits held out by hour-long stretches: a slow effect (per-run offsets, a slow
+        # trend) is interpolated away by the drift level across a short stretch, not across an hour.
+        self.long_engine = long_engine
         self.terms = terms
         self.allowed = allowed  # term -> channels on which the data can show it
         self.min_evidence = min_evidence
@@ -108,12 +112,13 @@ class Searcher:
 
     # -- one candidate -------------------------------------------------------------------
 
-    def systems(self, spec: Spec, rho: dict[str, int]) -> dict[str, ChannelSystem]:
-        return {c: self.engine.system(spec, c, rho[c]) for c in CHANNELS}
+    def systems(self, spec: Spec, rho: dict[str, int], engine: Engine | None = None) -> dict[str, ChannelSystem]:
+        eng = engine or self.engine
+        return {c: eng.system(spec, c, rho[c]) for c in CHANNELS}
 
     def evaluate(self, spec: Spec, systems: dict[str, ChannelSystem], rho: dict[str, int], term: str,
                  theta: dict[str, float], slopes: dict[str, np.ndarray] | None = None,
-                 only: list[str] | None = None) -> Evaluation:
+                 only: list[str] | None = None, engine: Engine | None = None) -> Evaluation:
         """The term at fixed nonlinear parameters on top of `spec`, channel by channel.
 
         thermal_lag is evaluated exactly (the baseline refitted at the lagged temperature),
@@ -121,19 +126,20 @@ class Searcher:
         slope * (T_element - T) -- cheap enough for the grid search.
         """
         t = self.terms[term]
-        ev = Evaluation(term, dict(theta))
-        pen = self.engine.penalty
+        eng = engine or self.engine
+        ev = Evaluation(term, dict(theta), holdout="short" if eng is self.engine else "long")
+        pen = eng.penalty
         channels = [c for c in CHANNELS if c in self.allowed.get(term, set()) and (only is None or c in only)]
-        cols = None if t.moves_baseline_temperature else self.engine.builder.columns(term, theta, lag_tau(spec))
-        ctx = self.engine.builder.ctx
+        cols = None if t.moves_baseline_temperature else eng.builder.columns(term, theta, lag_tau(spec))
+        ctx = eng.builder.ctx
         lag = (ctx.element_temp(theta[t.lag_parameter]) - ctx.meas.temp_c) if slopes is not None else None
         for c in channels:
             base = systems[c].cv
             if t.moves_baseline_temperature and slopes is not None:
-                cand = self.engine.try_columns(systems[c], ctx.blocks.mean(slopes[c] * lag)[:, None])
+                cand = eng.try_columns(systems[c], ctx.blocks.mean(slopes[c] * lag)[:, None])
                 added = 1
             elif t.moves_baseline_temperature:
-                cand = self.engine.system(replace(spec, Selected.make(term, theta, {c})), c, rho[c]).cv
+                cand = eng.system(replace(spec, Selected.make(term, theta, {c})), c, rho[c]).cv
                 added = 1
             else:
                 assert cols is not None
@@ -141,7 +147,7 @@ class Searcher:
                 # back at every step: its whitened columns are cached.
                 key = (term, tuple(sorted(theta.items())), lag_tau(spec) if t.uses_element_temperature else None,
                        c if t.per_channel_columns else "shared")
-                cand = self.engine.try_columns(systems[c], self.engine.whiten_cached(key, rho[c], cols[c]))
+                cand = eng.try_columns(systems[c], eng.whiten_cached(key, rho[c], cols[c]))
                 added = cand.n_params - base.n_params
                 if added <= 0:
                     ev.aliased.append(c)
@@ -282,6 +288,7 @@ always polished at the drift strength that is returned.
             while len(spec) < max_terms:
                 systems = self.systems(spec, rho)
                 evals = [self.search(spec, systems, rho, name) for name in candidates if name not in _names(spec)]
+                evals = self._on_long_blocks(spec, rho, evals)
                 steps.append(Step(spec, evals))
                 best = None
                 for ev in sorted(_own_channels(evals, self.engine.penalty, self.terms), key=_objective, reverse=True):
@@ -305,6 +312,29 @@ always polished at the drift strength that is returned.
         importance = {s.term: self._gain_of(spec, rho, s) for s in spec}
         order = sorted(spec, key=lambda s: -importance[s.term])
         return SelectionResult(tuple(order), rho, steps, confounds, importance)
+
+    def _on_long_blocks(self, spec: Spec, rho: dict[str, int], evals: list[Evaluation]) -> list[Evaluation]:
+        """Each candidate at its best parameters judged again on hour-long held-out stretches; the
+        better of the two judgements stands (both charge the same parameters)."""
+        if self.long_engine is None:
+            return evals
+        systems = self.systems(spec, rho, self.long_engine)
+        out = []
+        for ev in evals:
+            if not ev.delta:
+                out.append(ev)
+                continue
+            long = self.evaluate(spec, systems, rho, ev.term, ev.theta, engine=self.long_engine)
+            # Only channels where the short stretches' likelihood improves too: held out for an hour,
+            # a cubic may extrapolate across a whole soak, and what repairs that is no cause.
+            long.channels = [c for c in long.channels if ev.fit_gain.get(c, 0.0) > 0]
+            long.score = (sum(long.delta[c] for c in long.channels) - self.engine.penalty
+                          * self.terms[ev.term].free_nonlinear) if long.channels else -np.inf
+            out.append(long if _objective(long) > _objective(ev) else ev)
+        return out
+
+    def _heldout(self, engine: Engine, spec: Spec, channel: str) -> float:
+        return engine.heldout_rms(spec, engine.prediction_system(spec, channel))
 
     def raw_check(self, spec: Spec, rho: dict[str, int], ev: Evaluation) -> Evaluation:
         """Keep only the channels on which the term also lowers the held-out RMS of the raw rows.
@@ -331,7 +361,14 @@ always polished at the drift strength that is returned.
                 part = self.engine.term_fit(after_spec, system, ev.term)
                 if not term.consistent(part.coef, part.schur):
                     continue
-            if after < before * (1.0 - self.min_rms_gain):
+            better = after < before * (1.0 - self.min_rms_gain)
+            if self.long_engine is not None:
+                # And no worse on hour-long held-out stretches (within the same 0.1 %).
+                long_before = self._heldout(self.long_engine, spec, c)
+                long_after = self._heldout(self.long_engine, after_spec, c)
+                if long_after > long_before * (1.0 + self.min_rms_gain):
+                    continue
+            if better:
                 kept.append(c)
         if kept == ev.channels:
             return ev
@@ -350,6 +387,7 @@ always polished at the drift strength that is returned.
                     continue
                 rest = without(spec, sel.term)
                 ev = self.search_near(rest, self.systems(rest, rho), rho, sel)
+                ev = self._on_long_blocks(rest, rho, [ev])[0]
                 if ev.score > self.min_evidence:
                     ev = self.raw_check(rest, rho, ev)
                 if ev.score <= self.min_evidence:
@@ -363,27 +401,36 @@ always polished at the drift strength that is returned.
         return spec
 
     def _gain_of(self, spec: Spec, rho: dict[str, int], sel: Selected) -> float:
+        ev = self.own_evaluation(spec, rho, sel)
+        return float(sum(ev.fit_gain.get(c, 0.0) for c in sel.channels))
+
+    def own_evaluation(self, spec: Spec, rho: dict[str, int], sel: Selected) -> Evaluation:
+        """A selected term's evaluation given the others, on the held-out stretches it was judged on."""
         rest = without(spec, sel.term)
         ev = self.evaluate(rest, self.systems(rest, rho), rho, sel.term, sel.params)
-        return float(sum(ev.fit_gain.get(c, 0.0) for c in sel.channels))
+        return self._on_long_blocks(rest, rho, [ev])[0]
 
     def _confounds(self, spec: Spec, rho: dict[str, int], candidates: list[str]) -> list[Confound]:
         out: list[Confound] = []
         for sel in spec:
             rest = without(spec, sel.term)
             systems = self.systems(rest, rho)
+            # Like for like: both causes' fit on the short held-out stretches (a per-run term cannot
+            # predict a power-on held out whole, so on long stretches it would never look confounded).
             own = self.evaluate(rest, systems, rho, sel.term, sel.params)
             fit_a = sum(own.fit_gain.get(c, 0.0) for c in sel.channels)
             for name in candidates:
                 if name in _names(spec):
                     continue
                 # Only an alternative that could come near the selected cause is worth refining.
-                ev = self.search(rest, systems, rho, name, refine_above=0.5 * fit_a - self.confound_margin)
+                short = self.search(rest, systems, rho, name, refine_above=0.5 * fit_a - self.confound_margin)
+                ev = self._on_long_blocks(rest, rho, [short])[0]
                 if ev.score <= self.min_evidence:
                     continue
                 ev = self.raw_check(rest, rho, ev)
                 if ev.score <= self.min_evidence:
                     continue
+                ev.fit_gain, ev.added = short.fit_gain, short.added
                 fit_b = sum(max(ev.fit_gain.get(c, 0.0), 0.0) for c in sel.channels)
                 # Held-out likelihood charges about 1 per coefficient a fit does not need, so an
                 # alternative that fits as well with more coefficients shows that much less. But

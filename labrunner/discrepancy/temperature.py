@@ -113,3 +113,62 @@ def temperature_rate(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarray, windo
         tt, tv = t[s:e], temp[s:e]
         out[sel] = (np.interp(hi[sel], tt, tv) - np.interp(lo[sel], tt, tv)) / span[sel]
     return out
+
+
+# A temperature sensor whose reading reverses direction this often between changes is jittering,
+# not following the slow thermal path (a clean ramp, quantised or not, reverses only at its ends).
+_JITTER_REVERSALS = 0.2
+_SMOOTHED_SD_C = 0.004  # the smoothing window brings the sensor's jitter down to about this
+
+
+def temperature_jitter(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarray) -> tuple[float, float]:
+    """(row-to-row jitter of the temperature sensor in degC, fraction of direction reversals).
+
+    The jitter is the spread of successive differences over sqrt(2), with the slow path's own
+    change (a ramp's) taken out by differencing once more; reversals count consecutive nonzero
+    changes of opposite sign."""
+    temp = np.asarray(temp_c, dtype=float)
+    same = np.diff(run) == 0
+    d = np.diff(temp)[same]
+    moves = d[d != 0]
+    reversals = float(np.mean(np.sign(moves[1:]) != np.sign(moves[:-1]))) if moves.size > 10 else 0.0
+    if d.size < 10:
+        return 0.0, reversals
+    dd = np.diff(d)  # second differences: a ramp's slope cancels; white jitter of sd s gives sd s sqrt(6)
+    sd = float(np.sqrt(np.mean(np.clip(dd, -1.0, 1.0) ** 2) / 6.0))
+    return sd, reversals
+
+
+def is_jittery(reversals: float) -> bool:
+    return reversals > _JITTER_REVERSALS
+
+
+def smoothing_rows(jitter_c: float) -> int:
+    """Rows of a centred moving mean that bring white jitter of this size down to ~0.004 degC."""
+    return int(np.clip(np.ceil((jitter_c / _SMOOTHED_SD_C) ** 2), 5, 301)) | 1  # odd: centred
+
+
+def smooth_temperature(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarray, rows: int) -> np.ndarray:
+    """Centred moving mean over `rows` rows, within stretches without a power-on or a logging gap
+    (shrinking at their ends). Centred, it follows a steady ramp without delay, so heating and
+    cooling, the branch state and dT/dt see the thermal path instead of the sensor's jitter."""
+    t = np.asarray(t_s, dtype=float)
+    temp = np.asarray(temp_c, dtype=float)
+    out = temp.copy()
+    if temp.size < 3:
+        return out
+    dt = np.diff(t)
+    positive = dt[dt > 0]
+    gap = 5.0 * float(np.median(positive)) if positive.size else np.inf
+    cut = np.r_[True, (np.diff(run) != 0) | (dt > gap) | (dt <= 0)]
+    starts = np.flatnonzero(cut)
+    ends = np.r_[starts[1:], temp.size]
+    half = rows // 2
+    for s, e in zip(starts, ends):
+        seg = temp[s:e]
+        c = np.r_[0.0, np.cumsum(seg)]
+        i = np.arange(seg.size)
+        lo = np.maximum(i - half, 0)
+        hi = np.minimum(i + half + 1, seg.size)
+        out[s:e] = (c[hi] - c[lo]) / (hi - lo)
+    return out

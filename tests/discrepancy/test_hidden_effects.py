@@ -19,6 +19,7 @@ from labrunner.discrepancy import diagnose
 from labrunner.imu.model import CHANNELS, GYRO_CHANNELS
 
 from .campaigns import DRAWS, Hidden, campaign
+from .ols_reference import assert_no_worse_than_ols
 
 CAUSES = ("thermal_lag", "hysteresis", "warmup", "turn_on_bias", "g_sensitivity", "scale_nonlinearity",
           "temperature_nonlinearity", "lever_arm")
@@ -119,6 +120,7 @@ def test_a_hidden_effect_is_named_with_its_channels_parameters_and_gain(cause, s
     assert_found(result, hidden)
     CHECKS[cause](selected[0].parameters, hidden, config, frame, result)
     assert result.gain.improvement_pct > 0
+    assert_no_worse_than_ols(frame, result)
 
 
 @pytest.mark.parametrize("style", STYLES)
@@ -127,10 +129,14 @@ def test_no_extra_effect_gives_verdict_none(style):
     frame, _ = campaign([], style, seed, log_ramps=True)
     result = diagnose(frame)
     assert result.verdict == "none"
-    assert result.findings == []
+    assert [f for f in result.findings if f.status != "noise"] == []
     assert all(v == 0.0 for v in result.gain.improvement_by_channel.values())
-    if style == "reallog":  # the drift is noticed, as noise, on every channel
+    assert_no_worse_than_ols(frame, result)
+    if style == "reallog":  # the drift is noticed, as noise, on every channel, and the noise model fitted
         assert all(n.drift_evidence > 10 for n in result.noise.values())
+        noise = next(f for f in result.findings if f.cause == "noise")
+        assert noise.status == "noise" and noise.parameters["rate_random_walk"]
+        assert all(noise.gain.heldout_rms_after[c] < noise.gain.heldout_rms_before[c] for c in noise.channels)
 
 
 @pytest.mark.parametrize("style", STYLES)
@@ -146,6 +152,7 @@ def test_two_effects_at_once_are_both_found(style):
     assert result.verdict in selected
     assert_found(result, first)
     assert_found(result, second)
+    assert_no_worse_than_ols(frame, result)
 
 
 @pytest.mark.parametrize("design", [{"power_cycle": "temperature"}, {"power_cycle": "temperature", "log_ramps": True},

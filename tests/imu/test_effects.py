@@ -316,7 +316,7 @@ def test_adding_a_cause_is_one_file(tmp_path: Path) -> None:
         from labrunner.imu.model import EFFECT_TYPES, ImuInputs, default_imu_model
         from labrunner.imu.cause_table import cause_table
         from labrunner.discrepancy.terms import cause_order
-        assert list(EFFECT_TYPES)[-2:] == ["rate_offset", "bias_random_walk"]
+        assert list(EFFECT_TYPES)[-3:] == ["rate_offset", "bias_random_walk", "bias_instability"]
         assert "rate_offset" in cause_order() and "| `rate_offset` |" in cause_table()
         n = 5
         inputs = ImuInputs(t_s=np.arange(n, dtype=float), run=np.ones(n, int), t_on_s=np.arange(n, dtype=float),
