@@ -22,6 +22,7 @@ from pathlib import Path
 
 SUPERUSER = "labrunner"  # the cluster's superuser: trusted on loopback, the tests' default login
 PASSWORD_USER = "lab_pw"  # a role that must give its password (scram-sha-256), for the password tests
+PASSWORD = "pw-s3cret-9"
 MIN_MAJOR = 15
 
 
@@ -81,10 +82,11 @@ class PgServer:
             cur = conn.execute(statement)
             return list(cur.fetchall()) if cur.description else []
 
-    def new_database(self, prefix: str = "t") -> str:
-        """A fresh, empty database's name."""
+    def new_database(self, prefix: str = "t", *, owner: str | None = None, template: str | None = None) -> str:
+        """A fresh database's name: empty, or a copy of `template` (which nobody may be connected to)."""
         name = f"{prefix}_{uuid.uuid4().hex[:12]}"
-        self.sql(f'CREATE DATABASE "{name}"')
+        self.sql(f'CREATE DATABASE "{name}"' + (f' OWNER "{owner}"' if owner else "")
+                 + (f' TEMPLATE "{template}"' if template else ""))
         return name
 
     def terminate(self, database: str) -> int:
@@ -152,5 +154,5 @@ def start_server(*, durable: bool = False) -> PgServer:
                 server.destroy()
                 raise
             time.sleep(0.2)
-    server.sql(f"CREATE ROLE {PASSWORD_USER} LOGIN PASSWORD 'pw-s3cret-9'")
+    server.sql(f"CREATE ROLE {PASSWORD_USER} LOGIN PASSWORD '{PASSWORD}'")
     return server
