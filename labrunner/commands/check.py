@@ -20,12 +20,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "check", help="validate inputs without running anything",
         description="Validate a procedure (and print its plan: steps, samples, lab time), a lab configuration, a "
                     "sim configuration or a campaign CSV, any of them together. Problems are reported with file, "
-                    "line and key (or column); nothing talks to an instrument. Exit code 0 when all are valid, "
-                    "2 otherwise.",
+                    "line and key (or column); nothing talks to an instrument (except --ping, which only reads). "
+                    "Exit code 0 when all are valid, 2 otherwise (1 when a ping fails).",
         epilog="""\
 examples:
   labrunner check quick                                     # the shipped quick procedure's plan
   labrunner check procedures/paper_campaign.yaml --lab lab.yaml
+  labrunner check --lab lab.yaml --ping                     # talk to the instruments; nothing moves
   labrunner check --sim-config sim.yaml --csv quick.csv
   labrunner check quick --sim                               # also what `run --sim` refuses at its start
   labrunner check --db quick.db                             # the store: pages, JSON and sample blobs""")
