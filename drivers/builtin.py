@@ -38,7 +38,7 @@ RANGES: dict[str, Range] = {
 }
 REGISTER = Range(0, 65535, integer=True)  # a custom chamber profile's register addresses
 PROFILE_REGISTERS = ("process_value", "setpoint", "setpoint_min", "setpoint_max", "heat_output", "cool_output",
-                     "model_register")
+                     "model_register", "decimals_register", "units_register", "current_setpoint", "loop_stride")
 SETPOINT_C = Range(-100.0, 250.0, "C")
 
 
