@@ -16,13 +16,17 @@ from labrunner.store import Store
 from .test_api import FRAMES, N_STEPS, TINY
 
 
-@pytest.fixture(scope="module")
-def two_campaigns(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A store with campaign 1 done and campaign 2 paused after five steps."""
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def two_campaigns(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path | str:
+    """A store with campaign 1 done and campaign 2 paused after five steps: a SQLite file, or a
+    PostgreSQL database (its URL)."""
     d = tmp_path_factory.mktemp("list")
     proc = d / "tiny.yaml"
     proc.write_text(TINY)
-    db = d / "two.db"
+    db: Path | str = d / "two.db"
+    if request.param == "postgresql":
+        cluster = request.getfixturevalue("pg_cluster")
+        db = cluster.url(cluster.new_database())
     assert labrunner.run(proc, db=db, seed=1).state == "done"
     with labrunner.start_run(proc, db=db, seed=2) as session:
         def pause_after_five(p: labrunner.Progress) -> None:
@@ -33,7 +37,7 @@ def two_campaigns(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return db
 
 
-def test_summaries_give_every_field(two_campaigns: Path) -> None:
+def test_summaries_give_every_field(two_campaigns: Path | str) -> None:
     with labrunner.open(two_campaigns) as db:
         done, paused = db.summaries()
     assert (done.campaign_id, done.name, done.status, done.mode) == (1, "tiny", "done", "sim")
@@ -49,7 +53,7 @@ def test_summaries_give_every_field(two_campaigns: Path) -> None:
         (1, "done", N_STEPS, done.heartbeat_wall), (2, "paused", 5, paused.heartbeat_wall)]
 
 
-def test_summary_frame_matches_the_status_of_each_campaign(two_campaigns: Path) -> None:
+def test_summary_frame_matches_the_status_of_each_campaign(two_campaigns: Path | str) -> None:
     with labrunner.open(two_campaigns) as db:
         frame = db.summary()
     assert list(frame.campaign_id) == [1, 2] and list(frame.status) == ["done", "paused"]
@@ -62,7 +66,7 @@ def test_summary_frame_matches_the_status_of_each_campaign(two_campaigns: Path) 
             status.steps_done, status.steps_total, status.samples, status.mode)
 
 
-def test_list_prints_one_line_per_campaign(two_campaigns: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_list_prints_one_line_per_campaign(two_campaigns: Path | str, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["list", str(two_campaigns)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"{two_campaigns}: 2 campaigns"
