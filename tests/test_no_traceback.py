@@ -106,6 +106,9 @@ def _cases() -> Iterator[Case]:
     yield bad("fit", "mini.db", "--quiet", "--no-store", "--json", "somedir", names="somedir")
     for data in ("somedir", "short.csv", "header.csv"):
         yield bad("diagnose", data, "--json", "d.json", names=data)
+    for model in ("somedir", "garbage.csv", "missing.json"):  # a model file of another format, or none
+        yield bad("compensate", model, "short.csv", "--csv", "c.csv", names=model)
+    yield bad("compensate", "garbage.csv", "header.csv", "--csv", "c.csv", names="garbage.csv")
     yield bad("sim", "serve", "--config", "somedir", "--duration", "0.1", names="somedir")
     # Values out of range, once errors from deep inside (bind, the profile table, numpy's seed, sleep).
     yield bad("sim", "serve", "--chamber-port", "99999", names="--chamber-port")
