@@ -68,6 +68,9 @@ RANGES: dict[str, Range] = {
     "soak.stable_window_s": Range(1.0, 86400.0, "s"),
     "soak.max_wait_s": Range(1.0, 7 * 86400.0, "s"),
     "soak.poll_s": Range(0.1, 3600.0, "s"),
+    "soak.predict_window_s": Range(10.0, 86400.0, "s"),
+    "soak.predict_horizon_s": Range(1.0, 86400.0, "s"),
+    "soak.predict_tau_max_s": Range(10.0, 7 * 86400.0, "s"),
     "remount_c": TEMPERATURE_C,
     "remount_s": Range(0.0, 86400.0, "s"),
     "rates.list_dps": RATE_DPS,
@@ -143,6 +146,13 @@ class Soak(_Strict):
     on_timeout: Literal["continue", "pause", "abort"] = "pause"
     sensor: Literal["imu", "chamber"] = "imu"
     poll_s: float = Field(30.0, gt=0)
+    # criterion predictive (labrunner.runner.soak_predict): done when the fitted approach of the IMU
+    # temperature predicts less than tolerance_c of change over the horizon (default: one record_s)
+    criterion: Literal["spread", "predictive"] = "spread"
+    predict_window_s: float = Field(600.0, gt=0)
+    predict_horizon_s: float | None = Field(None, gt=0)
+    predict_model: Literal["single", "double"] = "single"
+    predict_tau_max_s: float = Field(7200.0, gt=0)
 
     @model_validator(mode="after")
     def _window_fits(self) -> Soak:
@@ -150,6 +160,13 @@ class Soak(_Strict):
             raise ValueError("stable_window_s must not exceed max_wait_s")
         if self.poll_s > self.stable_window_s:
             raise ValueError("poll_s must not exceed stable_window_s")
+        if self.criterion == "predictive":
+            if self.sensor != "imu":
+                raise ValueError("criterion predictive fits the IMU temperature: it needs sensor: imu")
+            if self.predict_window_s > self.max_wait_s:
+                raise ValueError("predict_window_s must not exceed max_wait_s")
+            if self.predict_window_s < 8 * self.poll_s:
+                raise ValueError("predict_window_s must hold at least 8 polls (8 * poll_s)")
         return self
 
 
@@ -403,6 +420,10 @@ class Procedure:
         ramp = abs(step_c) / ramp_c_per_min * 60.0
         if s.sensor != "imu":
             return ramp + s.stable_window_s
+        if s.criterion == "predictive":  # until the drift over the horizon, not the window's spread, is tolerable
+            shrink = 1.0 - math.exp(-(s.predict_horizon_s or self.model.record_s) / imu_lag_s)
+            follow = imu_lag_s * math.log(max(max(abs(step_c), s.tolerance_c) * shrink / s.tolerance_c, 1.0))
+            return ramp + max(follow, s.predict_window_s)
         follow = imu_lag_s * math.log(max(s.stable_window_s * max(abs(step_c), s.tolerance_c)
                                           / (imu_lag_s * s.tolerance_c), 1.0))
         return ramp + max(follow, s.stable_window_s)

@@ -554,9 +554,10 @@ class CampaignRunner:
     def _do_soaking(self) -> None:
         step = self.step
         s = self.p.soak
-        window = self._soak_window = SoakWindow(s, step.temperature_c)
+        window = self._soak_window = SoakWindow(s, step.temperature_c, horizon_s=self.p.record_s)
         started = self._soak_started if self._soak_started is not None else self.t
         deadline = started + s.max_wait_s
+        fallback_told = False
         while True:
             pv = self.lab.chamber.read_temperature()
             sample = self.lab.imu.latest()
@@ -565,9 +566,16 @@ class CampaignRunner:
             window.add(self.t, pv, imu_t)
             self._saw(pv, imu_t)
             self._report()  # the soak's progress, poll by poll
-            if window.stable():
-                self.event("info", f"soaked at {step.temperature_c} C: chamber {pv:.2f} C, IMU {imu_t:.2f} C",
-                           chamber_c=pv, imu_temp_c=imu_t)
+            stable = window.stable()
+            if window.fallback is not None and not fallback_told:
+                fallback_told = True
+                self.event("warning", f"predictive soak at {step.temperature_c} C falls back to the spread "
+                                      f"criterion: {window.fallback}", criterion="spread", reason=window.fallback)
+            if stable:
+                fit = window.prediction if window.fallback is None else None
+                how = f" (predictive: {fit.describe()})" if fit is not None else ""
+                self.event("info", f"soaked at {step.temperature_c} C: chamber {pv:.2f} C, IMU {imu_t:.2f} C{how}",
+                           chamber_c=pv, imu_temp_c=imu_t, **(fit.detail() if fit is not None else {}))
                 self.soaked()
                 return
             if self.t >= deadline:

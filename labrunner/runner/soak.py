@@ -3,6 +3,12 @@
 A soak is stable when the readings of the last `stable_window_s` all hold: the chamber within
 `tolerance_c` of the setpoint and, with `sensor: imu`, the IMU temperature's spread within
 `tolerance_c` too (the IMU lags the air, so a settled chamber alone does not mean a settled IMU).
+
+With `criterion: predictive` the IMU part is judged by extrapolation instead
+(`labrunner.runner.soak_predict`): once the soak has lasted `predict_window_s` with the chamber within
+tolerance over it, the fitted approach of the IMU temperature must predict less than `tolerance_c` of
+change over the horizon (`predict_horizon_s`, by default the procedure's `record_s`). A fit that gives no
+prediction switches that soak to the spread criterion for good (`SoakWindow.fallback`).
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from labrunner.procedure import Soak
+from labrunner.runner.soak_predict import ApproachFit, NoFit, fit_approach
 
 log = logging.getLogger(__name__)
 
@@ -87,9 +94,15 @@ def soak_progress(readings: Sequence[SoakReading], soak: Soak, setpoint_c: float
 class SoakWindow:
     """The readings of one soak, judged against its setpoint."""
 
-    def __init__(self, soak: Soak, setpoint_c: float) -> None:
+    def __init__(self, soak: Soak, setpoint_c: float, horizon_s: float | None = None) -> None:
         self.soak = soak
         self.setpoint_c = setpoint_c
+        # The predictive criterion's horizon: the soak's own, else the caller's (a record), else a window.
+        self.horizon_s = soak.predict_horizon_s or horizon_s or soak.stable_window_s
+        self.predictive = soak.criterion == "predictive"
+        self.prediction: ApproachFit | None = None  # the newest fit (predictive criterion)
+        self.fallback: str | None = None  # why this soak fell back to the spread criterion
+        self._keep_s = max(soak.stable_window_s, soak.predict_window_s if self.predictive else 0.0)
         self._first_t: float | None = None
         self._readings: deque[SoakReading] = deque()
 
@@ -98,7 +111,7 @@ class SoakWindow:
             self._first_t = t_s
         self._readings.append(SoakReading(t_s, chamber_c, imu_c))
         # Readings older than a window before the newest can never be judged again.
-        while self._readings and self._readings[0].t_s < t_s - self.soak.stable_window_s - _EPS_S:
+        while self._readings and self._readings[0].t_s < t_s - self._keep_s - _EPS_S:
             self._readings.popleft()
 
     def covered_s(self) -> float:
@@ -107,12 +120,39 @@ class SoakWindow:
             return 0.0
         return self._readings[-1].t_s - self._first_t
 
+    def _last(self, seconds: float) -> list[SoakReading]:
+        newest = self._readings[-1].t_s
+        return [r for r in self._readings if r.t_s >= newest - seconds - _EPS_S]
+
     def stable(self) -> bool:
+        """Stable by the soak's criterion: `spread` (below), or `predictive` until a fit fails."""
+        if self.predictive and self.fallback is None:
+            return self._predicted_stable()
+        return self._spread_stable()
+
+    def _predicted_stable(self) -> bool:
+        s = self.soak
+        if self._first_t is None or self.covered_s() < s.predict_window_s - _EPS_S:
+            return False
+        window = self._last(s.predict_window_s)
+        if any(abs(r.chamber_c - self.setpoint_c) > s.tolerance_c for r in window):
+            return False  # the IMU's forcing still moves: no single approach to fit
+        fit = fit_approach([r.t_s for r in window], [r.imu_c for r in window], self.horizon_s,
+                           s.predict_tau_max_s, s.predict_model)
+        if isinstance(fit, NoFit):
+            self.fallback = fit.reason
+            self.prediction = None
+            log.info("predictive soak at %s C falls back to the spread criterion: %s", self.setpoint_c, fit.reason)
+            return self._spread_stable()
+        self.prediction = fit
+        return fit.drift_bound_c <= s.tolerance_c
+
+    def _spread_stable(self) -> bool:
         """Stable once the soak has lasted a window and every reading of the last window holds."""
         s = self.soak
         if self._first_t is None or self.covered_s() < s.stable_window_s - _EPS_S:
             return False
-        window = list(self._readings)
+        window = self._last(s.stable_window_s)
         if any(abs(r.chamber_c - self.setpoint_c) > s.tolerance_c for r in window):
             return False
         if s.sensor == "imu":
