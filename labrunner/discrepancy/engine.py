@@ -65,6 +65,7 @@ class Engine:
         self._ycache: dict[tuple[str, int], Whitened] = {}
         self._zcache: OrderedDict[tuple, Whitened] = OrderedDict()
         self._row_block = blocks.row_block()
+        self._rms_cache: dict[tuple, float] = {}
 
     def filters(self, rho_index: int) -> FoldFilters:
         if rho_index not in self._filters:
@@ -235,14 +236,24 @@ class Engine:
         least-squares fit; the drift model weighs the evidence, this fit makes the model."""
         return self.system(spec, channel, 0)
 
+    def cached_heldout_rms(self, spec: Spec, channel: str) -> float:
+        """`heldout_rms` of a specification, kept: the selection asks for the same "before" often."""
+        key = (spec, channel)
+        if key not in self._rms_cache:
+            self._rms_cache[key] = self._heldout_rms(spec, channel)
+        return self._rms_cache[key]
+
     def heldout_rms(self, spec: Spec, system: ChannelSystem) -> float:
+        """Held-out raw RMS of the specification on the system's channel (see `_heldout_rms`)."""
+        return self.cached_heldout_rms(spec, system.channel)
+
+    def _heldout_rms(self, spec: Spec, channel: str) -> float:
         """Held-out RMS over the raw rows of measured minus model: each row predicted by the
         weighted least-squares fit of the block means on the other folds.
 
         A term whose columns the training folds never excite (the offset of a power-on held out
         whole) predicts nothing there: that fold is fitted without it, so an unseen power-on
         gets the other runs' mean offset, as a simulator drawing a new one would on average."""
-        channel = system.channel
         c = CHANNELS.index(channel)
         design = self.builder.design(spec, channel)
         x = design.x

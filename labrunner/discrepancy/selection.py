@@ -334,7 +334,8 @@ always polished at the drift strength that is returned.
         return out
 
     def _heldout(self, engine: Engine, spec: Spec, channel: str) -> float:
-        return engine.heldout_rms(spec, engine.prediction_system(spec, channel))
+        """Held-out raw RMS of a specification on a channel (least squares, so independent of the drift)."""
+        return engine.cached_heldout_rms(spec, channel)
 
     def raw_check(self, spec: Spec, rho: dict[str, int], ev: Evaluation) -> Evaluation:
         """Keep only the channels on which the term also lowers the held-out RMS of the raw rows.
@@ -346,10 +347,10 @@ always polished at the drift strength that is returned.
         kept = []
         term = self.terms[ev.term]
         for c in ev.channels:
-            before = self.engine.heldout_rms(spec, self.engine.system(spec, c, rho[c]))
+            before = self._heldout(self.engine, spec, c)
             after_spec = replace(spec, Selected.make(ev.term, ev.theta, {c}))
             system = self.engine.system(after_spec, c, rho[c])
-            after = self.engine.heldout_rms(after_spec, system)
+            after = self._heldout(self.engine, after_spec, c)
             floor = max(self.floors.get(c, 0.0), self.term_floors.get((ev.term, c), 0.0))
             if floor > 0 and ev.term in system.slices:
                 beta, _ = self.engine.coefficients(after_spec, system)
@@ -362,7 +363,7 @@ always polished at the drift strength that is returned.
                 if not term.consistent(part.coef, part.schur):
                     continue
             better = after < before * (1.0 - self.min_rms_gain)
-            if self.long_engine is not None:
+            if better and self.long_engine is not None:
                 # And no worse on hour-long held-out stretches (within the same 0.1 %).
                 long_before = self._heldout(self.long_engine, spec, c)
                 long_after = self._heldout(self.long_engine, after_spec, c)
