@@ -84,7 +84,7 @@ def test_check_db_on_a_garbled_page(clean_db, tmp_path):
 def test_check_db_on_a_clean_store(clean_db):
     r = cli("check", "--db", clean_db, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
-    assert "the store is intact: integrity check ok, 1 campaign(s)" in r.stdout
+    assert "the store is intact: integrity check ok, schema version ok, 1 campaign(s)" in r.stdout
 
 
 def test_bad_json_names_campaign_table_and_column(clean_db, tmp_path):

@@ -231,7 +231,8 @@ def test_a_store_failure_met_by_another_thread_is_raised_at_the_sequencers_next_
 
 def test_a_store_that_cannot_be_opened_is_named_not_mistaken_for_a_foreign_file(tmp_path):
     c = InprocCampaign(tmp_path, PROC)
-    path = c.store.path
+    path = c.store.path.file
+    assert path is not None
     c.store.close()
     with path.open("r+b") as fh:  # a damaged header page
         fh.seek(100)
