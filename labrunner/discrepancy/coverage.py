@@ -38,6 +38,7 @@ class Coverage:
     temperature_levels: int
     max_temperature_rate_c_per_min: float
     branch_overlap_c: float  # temperature span reached both while heating and while cooling
+    branch_rows: tuple[int, int]  # heating rows, cooling rows inside the range reached heating
     orientation_changes_without_power_on: int
     power_ons_within_an_orientation: int
     temperature_quantum_c: float | None
@@ -62,6 +63,7 @@ class Coverage:
             "temperature_levels": self.temperature_levels,
             "max_temperature_rate_c_per_min": round(self.max_temperature_rate_c_per_min, 3),
             "heating_and_cooling_overlap_c": round(self.branch_overlap_c, 2),
+            "branch_rows": {"heating": self.branch_rows[0], "cooling_inside_heated_range": self.branch_rows[1]},
             "orientation_changes_without_power_on": self.orientation_changes_without_power_on,
             "power_ons_within_an_orientation": self.power_ons_within_an_orientation,
             "temperature_quantum_c": self.temperature_quantum_c,
@@ -81,7 +83,9 @@ def assess(meas: Measurements) -> Coverage:
     temp = meas.temp_c
     dtdt = temperature_rate(meas.t_s, temp, meas.run) * 60.0
     h = branch_state(temp, 1.0, meas.remounts)
-    overlap = _branch_overlap(temp[h > 0.5], temp[h < -0.5])
+    heating, cooling = temp[h > 0.5], temp[h < -0.5]
+    overlap = _branch_overlap(heating, cooling)
+    inside = int(np.sum((cooling >= heating.min()) & (cooling <= heating.max()))) if heating.size else 0
     levels = _levels(temp)
     run_change = np.flatnonzero(meas.run[1:] != meas.run[:-1]) + 1
     orient_change = np.flatnonzero(meas.orientation[1:] != meas.orientation[:-1]) + 1
@@ -90,6 +94,7 @@ def assess(meas: Measurements) -> Coverage:
         max_rate_dps=float(rate.max()), chamber_logged=bool(np.isfinite(meas.chamber_c).any()),
         temperature_range_c=(float(temp.min()), float(temp.max())), temperature_levels=levels,
         max_temperature_rate_c_per_min=float(np.percentile(np.abs(dtdt), 99.5)), branch_overlap_c=overlap,
+        branch_rows=(int(heating.size), inside),
         orientation_changes_without_power_on=int(np.setdiff1d(orient_change, run_change).size),
         power_ons_within_an_orientation=int(np.setdiff1d(run_change, orient_change).size),
         temperature_quantum_c=meas.temperature_quantum_c, temperature_jitter_c=meas.temperature_jitter_c,

@@ -42,6 +42,7 @@ def test_hysteresis_under_jitter_and_quantisation_is_found(jitter):
         assert abs(finding.parameters["width"][c] - w) / w < 0.25, c
     assert result.coverage.temperature_smoothing_s > 0  # the jitter was seen and smoothed
     assert result.coverage.branch_overlap_c > 20.0  # heating and cooling overlap over most of the range
+    assert result.coverage.branch_rows[1] > 10_000  # cooling rows inside the range reached heating
     assert not any("no temperature range was reached both" in m for m in result.not_identifiable)
 
 
@@ -136,3 +137,34 @@ def test_the_noise_is_a_finding_with_its_parameters_and_allan_gain(tmp_path):
     names = {path.name for path in write_report(result, tmp_path)}
     assert "allan_deviation.png" in names
     assert "bias instability B" in (tmp_path / "summary.md").read_text()
+
+
+def test_the_hysteresis_claim_names_the_rows_it_is_about():
+    from labrunner.discrepancy.coverage import assess
+
+    frame, _ = log_like(9, 6, continuous=True)
+    frame["orientation"] = "z_up"  # no remount: the path never goes back through room temperature
+    n = len(frame)
+    ramp = np.linspace(23.0, 50.0, n) + np.random.default_rng(1).normal(0.0, 0.03, n)  # heating only, jittering
+    frame["imu_temp_c"] = np.round(ramp / 0.0625) * 0.0625
+    coverage = assess(Measurements.from_frame(frame))
+    claim = next(m for m in coverage.not_identifiable if m.startswith("hysteresis: no temperature range"))
+    heating, cooling = coverage.branch_rows
+    assert heating > 0.9 * n and cooling == 0  # the smoothed path only heats, whatever the sensor's jitter
+    assert f"{heating} rows heating, 0 cooling rows" in claim
+
+
+def test_a_bad_power_on_value_is_named_with_file_line_and_column(tmp_path):
+    from labrunner.campaign_csv import CampaignDataError, read_campaign, write_campaign
+
+    frame, _ = log_like(8, 1, power_on_column=True)
+    path = tmp_path / "log.csv"
+    write_campaign(frame, path)
+    assert read_campaign(path)["power_on"].sum() == frame["power_on"].sum()  # the column round-trips
+    lines = path.read_text().splitlines()
+    cells = lines[5].split(",")
+    cells[-1] = "2"
+    lines[5] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CampaignDataError, match=r"log.csv:6: column 'power_on': '2' is not 0 or 1"):
+        read_campaign(path)

@@ -104,7 +104,10 @@ class Hysteresis(Effect):
             gaps.append(Gap("hysteresis: the IMU is power-cycled between soaks and the ramps are not logged, so the "
                             "self-heating after each power-on moves the branch where the log cannot see it", CHANNELS))
         if facts.branch_overlap_c < MIN_BRANCH_OVERLAP_C:
-            gaps.append(Gap("hysteresis: no temperature range was reached both while heating and while cooling",
+            heating, cooling = facts.branch_rows  # the claim, with the rows it is about
+            gaps.append(Gap(f"hysteresis: no temperature range was reached both while heating and while cooling "
+                            f"(over {MIN_BRANCH_OVERLAP_C:g} degC): {heating} rows heating, {cooling} cooling rows "
+                            f"inside the range reached heating, {facts.branch_overlap_c:.1f} degC in common",
                             CHANNELS))
         return gaps
 
