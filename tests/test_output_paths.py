@@ -58,6 +58,24 @@ def test_the_store_itself_is_refused_even_with_force(tmp_path: Path) -> None:
         check_output(db, store=db, inputs=[db], force=True)
 
 
+def test_a_store_given_by_url_is_protected_by_its_file_or_not_at_all(tmp_path: Path) -> None:
+    from labrunner.store_address import store_address
+
+    db = tmp_path / "u.db"
+    for store in (f"sqlite:///{db}", store_address(f"sqlite:///{db}")):  # a SQLite URL names its file
+        with pytest.raises(OutputPathError, match="is the store"):
+            check_output(db, store=store, force=True)
+        with pytest.raises(OutputPathError, match="companion file of the store"):
+            check_output(f"{db}-wal", store=store, force=True)
+    # A server database is no file: an output may be named anything, the password is never in a message.
+    server = "postgresql+psycopg://u:s3cret@db.lab/cal"
+    assert check_output(tmp_path / "cal", store=server, force=True) == (tmp_path / "cal").resolve()
+    (tmp_path / "old.csv").write_text("x")
+    with pytest.raises(OutputPathError) as err:
+        check_output(tmp_path / "old.csv", store=store_address(server), inputs=[server])
+    assert "s3cret" not in str(err.value)
+
+
 def test_an_input_that_is_not_a_store_is_named_an_input(tmp_path: Path) -> None:
     proc = tmp_path / "quick.yaml"
     proc.write_text(TINY)
