@@ -183,6 +183,8 @@ def fit_joint(records: Records, triad: str, order: int, t_ref_c: float = 25.0,
                      " cannot be fitted from these temperatures; they are set to 0")
     missing = [(c, b) for c in range(3) for b in range(4) if not ident[b].any()]
     not_fitted = [describe_missing(triad, missing, records.orientation, is_rotating(records))] if missing else []
+    if combined and not_fitted:  # separately, that is: what the orientations determine is in the model
+        not_fitted[0] += "; they are fitted in combination instead (see 'combined')"
     w = records.duration_s
     resid = target - x @ raw if combined else fit.residual
     rms = np.sqrt(np.sum(w[:, None] * resid ** 2, axis=0) / np.sum(w)) if len(records) else np.full(3, np.nan)
