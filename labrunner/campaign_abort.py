@@ -71,7 +71,7 @@ def _safe_state_directly(info: Any, say: Callable[[str], None]) -> None:
     from labrunner.procedure import parse_procedure
     from labrunner.runner.safe_stop import safe_stop
 
-    procedure = parse_procedure(info.procedure_text, "stored procedure")
+    procedure = parse_procedure(info.procedure_text, "stored procedure", stored=True)
     lab = real_lab(lab_config_from_dict(info.lab_config, "stored lab configuration"),
                    max_rate_dps=procedure.model.safety.max_rate_dps)
     try:

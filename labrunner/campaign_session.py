@@ -431,7 +431,7 @@ def start_resume(db: str | Path | StoreAddress, *, campaign: int | None = None,
     try:
         cid = store.resolve(campaign)
         info = store.campaign(cid)
-        procedure = parse_procedure(info.procedure_text, f"{db} (campaign {cid} procedure)")
+        procedure = parse_procedure(info.procedure_text, f"{db} (campaign {cid} procedure)", stored=True)
         if info.status == "done":
             return Session(store, cid, procedure, mode=info.mode, db=db, status_before="done", next_step=None)
         decision = acquire(store, cid, take_over=take_over)

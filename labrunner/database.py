@@ -234,7 +234,8 @@ class Campaign:
         """The procedure the campaign was planned from (as stored with it)."""
         from labrunner.procedure import parse_procedure
 
-        return parse_procedure(self.info.procedure_text, f"{self.db.path} (campaign {self.id} procedure)")
+        return parse_procedure(self.info.procedure_text, f"{self.db.path} (campaign {self.id} procedure)",
+                               stored=True)
 
     def steps(self) -> pd.DataFrame:
         """The planned record steps: idx, orientation, temperature_c, rate_dps, status, attempts, n_samples, ..."""

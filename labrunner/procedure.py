@@ -485,8 +485,27 @@ def _cross_checks(model: ProcedureModel, positions: dict[tuple[Any, ...], int], 
     return problems
 
 
-def parse_procedure(text: str, source: str) -> Procedure:
+# Keys an earlier labrunner accepted and never read, now refused when written: a campaign stored
+# with them still resumes (the key is dropped, with a warning), as its plan never depended on them.
+_RETIRED_KEYS = {"faults": ("retries", "backoff_s")}
+
+
+def _drop_retired(data: Any, source: str) -> None:
+    for section, keys in _RETIRED_KEYS.items():
+        part = data.get(section) if isinstance(data, dict) else None
+        for key in keys:
+            if isinstance(part, dict) and key in part:
+                del part[key]
+                log.warning("%s: %s.%s is no longer read; ignored for this stored campaign", source, section,
+                               key)
+
+
+def parse_procedure(text: str, source: str, *, stored: bool = False) -> Procedure:
+    """A procedure from its text. `stored`: the text a campaign was started with, read back on resume,
+    where keys retired since are dropped rather than refused."""
     data, positions = load_yaml(text, source)
+    if stored:
+        _drop_retired(data, source)
     model = validate(ProcedureModel, data, positions, source)
     problems = _cross_checks(model, positions, source)
     if problems:

@@ -71,3 +71,15 @@ def test_cli_reports_a_bad_procedure_without_traceback(tmp_path):
     assert f"{bad}:6: soak.tolerance_c must be in 0.01..10 C, got -1" in proc.stderr
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "x.db").exists()  # nothing started, nothing written
+
+
+def test_a_stored_campaign_with_retired_fault_keys_still_resumes(caplog):
+    # faults.retries/backoff_s were accepted (and never read) before; now refused when written. A campaign
+    # stored with them must still be readable for resume, abort and status.
+    text = (ROOT / "procedures" / "quick.yaml").read_text() + "\nfaults:\n  retries: 3\n  backoff_s: 0.5\n"
+    with pytest.raises(ConfigError, match="retries"):
+        parse_procedure(text, "new.yaml")
+    stored = parse_procedure(text, "x.db (campaign 1 procedure)", stored=True)
+    assert stored.text == text  # the stored text itself is kept as it was
+    assert stored.steps() == load_procedure(ROOT / "procedures" / "quick.yaml").steps()
+    assert "faults.retries is no longer read" in caplog.text
