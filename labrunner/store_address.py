@@ -15,11 +15,12 @@ import argparse
 import re
 from dataclasses import dataclass
 from pathlib import Path
-
-from sqlalchemy.engine import URL, make_url
-from sqlalchemy.exc import ArgumentError
+from typing import TYPE_CHECKING
 
 from labrunner.errors import UserError
+
+if TYPE_CHECKING:  # SQLAlchemy is imported when an address is made: every command's start would pay for it
+    from sqlalchemy.engine import URL
 
 SQLITE_MAGIC = b"SQLite format 3\x00"
 # scheme://... (a Windows drive letter or a relative path has no "://")
@@ -81,6 +82,9 @@ class StoreAddress:
 def store_address(db: str | Path | StoreAddress) -> StoreAddress:
     """A --db argument as a store's address: a path (SQLite) or a URL; a URL labrunner cannot use is
     refused with one line (`UserError`) that shows no password."""
+    from sqlalchemy.engine import URL, make_url
+    from sqlalchemy.exc import ArgumentError
+
     if isinstance(db, StoreAddress):
         return db
     if not is_url(db):
