@@ -329,6 +329,16 @@ class SerialImu:
             self._drain_locked()
             return self._cond.wait_for(lambda: self._last_arrived16 == counter16, wait_s)
 
+    def wait_received(self, n_bytes: int, timeout_s: float) -> bool:
+        """Wait until `n_bytes` have arrived since this driver was made, all parsed (a dry run's barrier:
+        the simulated IMU says how many it put on the line, frames or not)."""
+        wait_s = io_timeouts.wall_timeout(self.address, timeout_s)
+        with self._cond:
+            if self._ser is None and self._running:
+                self._reopen_locked()  # a dry run's lost line: reopened now, or at a later barrier
+            self._drain_locked()
+            return self._cond.wait_for(lambda: self.bytes_received >= n_bytes, wait_s)
+
     def begin_record(self) -> int:
         """Mark the start of a record: the counter of the last frame received (-1: none yet, the
         record then starts at the first frame that arrives)."""

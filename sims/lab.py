@@ -103,6 +103,15 @@ class SimLab:
         """The IMU loses power (the operator opened the door to remount it)."""
         self.world.power_off()
 
+    def settle_imu(self, imu: object) -> None:
+        """A dry run's barrier, after each clock advance: wait until the IMU driver has read every byte the
+        simulated IMU put on the line (frames, corrupt ones too), so what it parsed does not depend on
+        how fast the machine is. Drivers without `wait_received` (not a stream reader) are left alone."""
+        wait = getattr(imu, "wait_received", None)
+        if wait is not None and getattr(imu, "streaming", False):
+            if not wait(self.imu_port.bytes_written, SAFETY_NET_S):
+                log.warning("simulated IMU: the driver did not read what was sent within %g s", SAFETY_NET_S)
+
     @property
     def last_imu_counter(self) -> int | None:
         """16-bit counter of the last intact IMU frame put on the line (None: none since power-on)."""

@@ -193,8 +193,8 @@ def test_a_port_closed_under_the_reader_is_a_lost_link_not_a_dead_thread():
             time.sleep(0.02)
         assert events[:2] == ["imu_link_lost", "imu_link_restored"]
         assert drv._thread is not None and drv._thread.is_alive()
-        port.write(_frames([1, 2, 3]))
-        assert drv.wait_counter16(3, 2.0)
+        # Frames reach the driver again (once the port has taken the new connection).
+        assert any(port.write(_frames([k])) and drv.wait_counter16(k, 0.1) for k in range(1, 40))
     finally:
         drv.close()
         port.close()
