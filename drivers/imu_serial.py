@@ -115,10 +115,10 @@ class SerialImu:
         """The line is open or being opened again (what is sent now will be read).
 
         On a link a simulator serves on a virtual clock (`labrunner.clock.io_timeouts`) the reader
-        thread does not reopen a lost line by itself: the dry run's barrier (`wait_counter16`) and
+        thread does not reopen a lost line by itself: the dry run's barrier (`wait_received`) and
         `connect` do, so a reconnect and its event happen at one moment of virtual time.
         """
-        return self._ser is not None or self._reopening or (self._running and io_timeouts.is_virtual(self.address))
+        return self._ser is not None or self._reopening
 
     @property
     def streaming(self) -> bool:
