@@ -25,6 +25,7 @@ from typing import Any, ClassVar, Literal
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from labrunner.domain import ORIENTATIONS
+from labrunner.ramp_plan import ramp_points
 from labrunner.yaml_config import ConfigError, Range, RangedModel, load_yaml, read_text, validate
 
 log = logging.getLogger(__name__)
@@ -71,6 +72,8 @@ RANGES: dict[str, Range] = {
     "soak.predict_window_s": Range(10.0, 86400.0, "s"),
     "soak.predict_horizon_s": Range(1.0, 86400.0, "s"),
     "soak.predict_tau_max_s": Range(10.0, 7 * 86400.0, "s"),
+    "ramp.c_per_min": Range(0.01, 10.0, "C/min"),
+    "ramp.bin_c": Range(0.1, 20.0, "C"),
     "remount_c": TEMPERATURE_C,
     "remount_s": Range(0.0, 86400.0, "s"),
     "rates.list_dps": RATE_DPS,
@@ -265,6 +268,15 @@ class Resume(_Strict):
     chamber_tolerance_c: float = Field(2.0, gt=0, le=20)  # "near": within this of the next step's setpoint
 
 
+class Ramp(_Strict):
+    """A ramp campaign (labrunner.ramp_plan): per orientation one slow ramp across the temperatures'
+    range, the rate schedule repeated along it, instead of a soak at each temperature."""
+
+    SECTION: ClassVar[str] = "ramp"
+    c_per_min: float = Field(gt=0)
+    bin_c: float = Field(1.0, gt=0)
+
+
 class Fit(_Strict):
     SECTION: ClassVar[str] = "fit"
     run: bool = True
@@ -291,6 +303,7 @@ class ProcedureModel(_Strict):
     mount_check: MountCheck = MountCheck()
     resume: Resume = Resume()
     fit: Fit = Fit()
+    ramp: Ramp | None = None
 
     @field_validator("orientations", mode="before")
     @classmethod
@@ -357,11 +370,23 @@ class Procedure:
     def steps(self) -> list[Step]:
         out: list[Step] = []
         rates = self.model.rates.values()
+        ramp = self.model.ramp
         for oi, (name, _) in enumerate(self.orientations()):
+            if ramp is not None:  # one slow ramp per orientation; temperature_index is the bin
+                temps = self.temperatures_for(oi)
+                for pt in ramp_points(temps[0], temps[-1], ramp.c_per_min, ramp.bin_c, self._rate_durations_s()):
+                    out.append(Step(len(out), name, pt.temperature_c, rates[pt.rate_index], oi, pt.bin_index,
+                                    pt.rate_index))
+                continue
             for ti, temp in enumerate(self.temperatures_for(oi)):
                 for ri, rate in enumerate(rates):
                     out.append(Step(len(out), name, temp, rate, oi, ti, ri))
         return out
+
+    def _rate_durations_s(self) -> list[float]:
+        """Each rate step's settle, spin-up (~100 deg/s^2) and record: how far apart a ramp's steps are."""
+        m = self.model
+        return [m.settle_s + m.record_s + abs(r) / 100.0 for r in m.rates.values()]
 
     @property
     def frames_per_record(self) -> int:
@@ -375,6 +400,10 @@ class Procedure:
         tolerance over the window: about tau * ln(window * dT / (tau * tolerance)).
         """
         m = self.model
+        if m.ramp is not None:  # the steps' ends, and the way back to the remount temperature
+            ends = self.estimated_step_ends_s(ramp_c_per_min, imu_lag_s)
+            last = self.temperatures_for(len(m.orientations) - 1)[-1]
+            return (ends[-1] if ends else 0.0) + abs(last - m.remount_c) / ramp_c_per_min * 60.0 + m.remount_s
         total = 0.0
         for oi, _ in enumerate(self.orientations()):
             prev = m.remount_c
@@ -398,13 +427,16 @@ class Procedure:
         ends: list[float] = []
         t = 0.0
         prev = m.remount_c
+        prev_o = -1
         for step in self.steps():
-            if step.temperature_index == 0 and step.rate_index == 0:
+            first = step.orientation_index != prev_o  # an orientation's first step: a remount before it
+            if first:
                 t += abs(prev - m.remount_c) / ramp_c_per_min * 60.0 + m.remount_s
                 prev = m.remount_c
-            if step.rate_index == 0:
+            # Along a ramp the setpoint moves with the steps: a soak only at the ramp's start.
+            if first or (m.ramp is None and step.rate_index == 0):
                 t += self._soak_estimate_s(step.temperature_c - prev, ramp_c_per_min, imu_lag_s)
-                prev = step.temperature_c
+            prev, prev_o = step.temperature_c, step.orientation_index
             t += m.settle_s + m.record_s + abs(step.rate_dps) / 100.0
             ends.append(t)
         return ends

@@ -700,6 +700,10 @@ class CampaignRunner:
         nxt = self.step
         if nxt.orientation != self.mounted_orientation:
             self.next_orientation()
+        elif self.p.ramp is not None and nxt.orientation_index == prev.orientation_index:
+            # A ramp campaign (labrunner.ramp_plan): the setpoint moves on with the step, no soak.
+            self.lab.chamber.set_setpoint(nxt.temperature_c)
+            self.next_rate()
         elif nxt.temperature_c != prev.temperature_c or nxt.orientation_index != prev.orientation_index:
             self.lab.table.stop()
             self.next_temperature()

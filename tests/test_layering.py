@@ -32,6 +32,7 @@ ROOMS: dict[str, str] = {
     "labrunner.runner": "orchestration",
     "labrunner.store": "store",
     "labrunner.procedure": "orchestration",
+    "labrunner.ramp_plan": "orchestration",  # the steps of a ramp campaign (procedure.py expands them)
     "labrunner.yaml_config": "base",
     "labrunner.campaign_csv": "store",
     "labrunner.data_source": "store",

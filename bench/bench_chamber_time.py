@@ -1,0 +1,201 @@
+"""Chamber time against accuracy (issue 16): the strict, predictive and ramp campaigns side by side.
+
+Usage: nice python bench/bench_chamber_time.py [--seed 3] [--workdir DIR] [--only strict,fast,ramp]
+
+Runs on the simulated lab, one seed and one IMU for all (the paper's IMU plus a thermal lag of the
+sensing element behind its temperature sensor and a non-cubic step in the temperature law):
+
+- strict: procedures/paper_campaign.yaml (soak until the IMU spread is <= 0.1 C over 10 min)
+- predictive: procedures/paper_campaign_fast.yaml (soak.criterion: predictive)
+- ramp: procedures/ramp_campaign.yaml (one slow ramp per orientation, the rate schedule along it)
+
+each with the end-of-run polynomial fit (rbf off, so every campaign exports the same kind of model),
+and two held-out campaigns no calibration saw: soaks at temperatures between the calibrated ones (six
+orientations, three rates) and the paper's static heating test (z up, table at rest, the chamber
+heating at 1 C/min). Each exported polynomial.json is applied to the held-out rows (record rows only);
+the error is the RMS over x, y, z of compensated minus true specific force / angular rate. PX4's method
+(`labrunner.calibration.px4_reference`, offsets only, one cubic per orientation from a temperature
+sweep) is fitted on the ramp campaign's static rows: the reference row.
+
+A --workdir keeps the stores; a campaign whose store holds a finished run is not run again.
+Prints lab time, samples and held-out errors, and each campaign's ratios to the strict one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+IMU_EFFECTS = {
+    "thermal_lag": {"tau_s": 240.0, "channels": ["accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z"]},
+    "temperature_nonlinearity": {"amplitude": {"accel_z": 0.004, "gyro_x": 0.08, "gyro_z": 0.08},
+                                 "center_c": 12.0, "width_c": 6.0},
+}
+
+HELDOUT_SOAKS = """\
+name: heldout_soaks
+description: held-out soaks between the calibrated temperatures
+temperatures: {list_c: [-22.5, -7.5, 7.5, 22.5, 37.5, 52.5], order: serpentine}
+soak: {tolerance_c: 0.1, stable_window_s: 600, max_wait_s: 10800, on_timeout: pause, sensor: imu, poll_s: 30}
+orientations: [x_up, x_down, y_up, y_down, z_up, z_down]
+rates: {list_dps: [-50, 0, 50]}
+settle_s: 5
+record_s: 60
+fit: {run: false}
+"""
+
+HELDOUT_HEATING = """\
+name: heldout_heating
+description: the paper's static heating test (table at rest, the chamber heating)
+temperatures: {start_c: -20, stop_c: 50, step_c: 10}
+soak: {tolerance_c: 0.1, stable_window_s: 600, max_wait_s: 10800, on_timeout: pause, sensor: imu, poll_s: 30}
+ramp: {c_per_min: 1.0}
+orientations: [z_up]
+rates: {list_dps: [0]}
+settle_s: 0
+record_s: 60
+fit: {run: false}
+"""
+
+CAMPAIGNS = {"strict": "paper_campaign.yaml", "fast": "paper_campaign_fast.yaml", "ramp": "ramp_campaign.yaml"}
+
+
+@dataclass
+class Run:
+    name: str
+    db: Path
+    fit_dir: Path
+    lab_h: float
+    samples: int
+    wall_s: float
+
+
+def _shipped(name: str) -> str:
+    return resources.files("labrunner.procedures").joinpath(name).read_text()
+
+
+def _finished(db: Path) -> bool:
+    if not db.exists():
+        return False
+    from labrunner.store import Store
+
+    with Store.open_existing(db) as s:
+        return s.campaign(1).status == "done"
+
+
+def run_campaign(name: str, text: str, work: Path, sim: Path, seed: int) -> Run:
+    from labrunner.store import Store
+
+    proc = work / f"{name}.yaml"
+    proc.write_text(text.replace("rbf: true", "rbf: false"))
+    db, fit_dir = work / f"{name}.db", work / f"{name}_fit"
+    wall = 0.0
+    if not _finished(db):
+        db.unlink(missing_ok=True)
+        t0 = time.perf_counter()
+        p = subprocess.run([sys.executable, "-m", "labrunner.cli", "run", str(proc), "--sim", "--sim-config", str(sim),
+                            "--seed", str(seed), "--db", str(db), "--fit-out", str(fit_dir), "--force", "--quiet"],
+                           capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if p.returncode != 0:
+            raise SystemExit(f"{name}: labrunner run exited {p.returncode}:\n{p.stderr[-3000:]}")
+    with Store.open_existing(db) as s:
+        info = s.campaign(1)
+        steps = s.steps_frame(1)
+        return Run(name, db, fit_dir / "campaign-1", (info.clock_last - info.clock_t0) / 3600.0,
+                   int(steps.n_samples.sum()), wall)
+
+
+def _rms(err: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(err ** 2)))
+
+
+def heldout_errors(model_path: Path | None, px4, frame) -> tuple[float, float]:
+    """(accel g, gyro deg/s) RMS error over x, y, z of the held-out rows; model None and px4 None: raw."""
+    from labrunner.calibration.apply import compensate_data, read_model
+    from labrunner.calibration.records import frame_arrays, reference_values
+    from labrunner.campaign_csv import OUTPUT_COLUMNS
+
+    a = frame_arrays(frame)
+    if model_path is not None:
+        out = compensate_data(read_model(model_path), frame).frame
+        y = np.column_stack([out[c + "_comp"].to_numpy(dtype=float) for c in OUTPUT_COLUMNS])
+    elif px4 is not None:
+        y = px4.compensate_rows(a["y"], a["temp"], a["orientation"])
+    else:
+        y = a["y"]
+    err = y - reference_values(a["orientation"], a["rate"])
+    return _rms(err[:, :3]), _rms(err[:, 3:])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--workdir", type=Path, default=None)
+    ap.add_argument("--only", default="strict,fast,ramp")
+    args = ap.parse_args()
+    from labrunner.calibration.px4_reference import fit_px4
+    from labrunner.calibration.records import frame_arrays
+    from labrunner.data_source import load_campaign_data
+
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="labrunner-chamber-time-"))
+    work.mkdir(parents=True, exist_ok=True)
+    sim = work / "sim.json"
+    sim.write_text(json.dumps({"seed": args.seed, "imu_model": {"effects": IMU_EFFECTS}}))
+    names = [n for n in args.only.split(",") if n]
+    runs = [run_campaign(n, _shipped(CAMPAIGNS[n]), work, sim, args.seed) for n in names]
+    held = [run_campaign("heldout_soaks", HELDOUT_SOAKS, work, sim, args.seed + 100),
+            run_campaign("heldout_heating", HELDOUT_HEATING, work, sim, args.seed + 101)]
+    frames = {h.name: load_campaign_data(h.db).frame for h in held}
+    px4 = None
+    ramp = next((r for r in runs if r.name == "ramp"), None)
+    if ramp is not None:
+        f = load_campaign_data(ramp.db).frame
+        a = frame_arrays(f)
+        px4 = fit_px4(a, np.ones(len(f), bool))
+
+    print(f"work: {work}  (seed {args.seed}; IMU effects: {', '.join(IMU_EFFECTS)})")
+    head = f"{'campaign':<12}{'lab h':>8}{'lab days':>9}{'samples':>13}{'wall s':>8}"
+    cols = "".join(f"{h + ' ' + t:>22}" for h in ("soaks", "heating") for t in ("accel mg", "gyro dps"))
+    print(head + cols)
+
+    def row(label: str, lab_h: float | None, samples: int | None, wall: float | None, errs: list[float]) -> None:
+        left = (f"{label:<12}{lab_h:>8.1f}{lab_h / 24:>9.2f}{samples:>13,}{wall:>8.0f}" if lab_h is not None
+                else f"{label:<12}{'':>8}{'':>9}{'':>13}{'':>8}")
+        print(left + "".join(f"{v:>22.4f}" for v in errs))
+
+    def errs_for(model: Path | None, p4=None) -> list[float]:
+        out: list[float] = []
+        for name in ("heldout_soaks", "heldout_heating"):
+            acc, gyr = heldout_errors(model, p4, frames[name])
+            out += [acc * 1000.0, gyr]
+        return out
+
+    row("raw", None, None, None, errs_for(None))
+    results = {}
+    for r in runs:
+        e = errs_for(r.fit_dir / "polynomial.json")
+        results[r.name] = (r, e)
+        row(r.name, r.lab_h, r.samples, r.wall_s, e)
+    if px4 is not None:
+        row("px4 (ramp)", None, None, None, errs_for(None, px4))
+    if "strict" in results:
+        base = results["strict"]
+        for name, (r, e) in results.items():
+            if name == "strict":
+                continue
+            ratios = ", ".join(f"{v / b:.3f}" for v, b in zip(e, base[1], strict=True))
+            print(f"{name} / strict: lab time {r.lab_h / base[0].lab_h:.3f}, held-out error ratios {ratios}")
+
+
+if __name__ == "__main__":
+    main()
