@@ -132,11 +132,12 @@ def test_no_extra_effect_gives_verdict_none(style):
     assert [f for f in result.findings if f.status != "noise"] == []
     assert all(v == 0.0 for v in result.gain.improvement_by_channel.values())
     assert_no_worse_than_ols(frame, result)
-    if style == "reallog":  # the drift is noticed, as noise, on every channel, and the noise model fitted
+    if style == "reallog":  # the drift is noticed, as noise, on every channel
         assert all(n.drift_evidence > 10 for n in result.noise.values())
-        noise = next(f for f in result.findings if f.cause == "noise")
-        assert noise.status == "noise" and noise.parameters["rate_random_walk"]
-        assert all(noise.gain.heldout_rms_after[c] < noise.gain.heldout_rms_before[c] for c in noise.channels)
+        # Within the stretches logged without a gap (under an hour here) the Allan deviation is white
+        # noise's: the simulator's white noise matches it within the target, so no noise finding.
+        assert result.allan is not None and max(result.allan.mismatch_before.values()) <= 0.2
+        assert "noise" not in {f.cause for f in result.findings}
 
 
 @pytest.mark.parametrize("style", STYLES)
