@@ -13,7 +13,8 @@ each with the end-of-run polynomial fit (rbf off, so every campaign exports the 
 and two held-out campaigns no calibration saw: soaks at temperatures between the calibrated ones (six
 orientations, three rates) and the paper's static heating test (z up, table at rest, the chamber
 heating at 1 C/min). Each exported polynomial.json is applied to the held-out rows (record rows only);
-the error is the RMS over x, y, z of compensated minus true specific force / angular rate. PX4's method
+the error is the RMS over x, y, z and over the held-out records of each record's mean compensated minus
+true specific force / angular rate (per sample the sensor noise would hide every difference). PX4's method
 (`labrunner.calibration.px4_reference`, offsets only, one cubic per orientation from a temperature
 sweep) is fitted on the ramp campaign's static rows: the reference row.
 
@@ -119,8 +120,22 @@ def _rms(err: np.ndarray) -> float:
     return float(np.sqrt(np.mean(err ** 2)))
 
 
-def heldout_errors(model_path: Path | None, px4, frame) -> tuple[float, float]:
-    """(accel g, gyro deg/s) RMS error over x, y, z of the held-out rows; model None and px4 None: raw."""
+def record_labels(db: Path, frame) -> np.ndarray:
+    """Each row's record step (-1: none), from the steps' start and end times."""
+    from labrunner.store import Store
+
+    with Store.open_existing(db) as s:
+        steps = s.steps_frame(1)
+    t = frame["t_s"].to_numpy(dtype=float)
+    labels = np.full(t.size, -1, dtype=np.int64)
+    for k, (a, b) in enumerate(zip(steps.t_start, steps.t_end, strict=True)):
+        labels[(t >= a) & (t <= b)] = k
+    return labels
+
+
+def heldout_errors(model_path: Path | None, px4, frame, labels: np.ndarray) -> tuple[float, float]:
+    """(accel g, gyro deg/s) RMS over x, y, z of the held-out records' mean errors (the sensor noise
+    averages out of a record's mean: what is left is the calibration's error); model and px4 None: raw."""
     from labrunner.calibration.apply import compensate_data, read_model
     from labrunner.calibration.records import frame_arrays, reference_values
     from labrunner.campaign_csv import OUTPUT_COLUMNS
@@ -134,7 +149,12 @@ def heldout_errors(model_path: Path | None, px4, frame) -> tuple[float, float]:
     else:
         y = a["y"]
     err = y - reference_values(a["orientation"], a["rate"])
-    return _rms(err[:, :3]), _rms(err[:, 3:])
+    keep = labels >= 0
+    n = int(labels.max()) + 1
+    cnt = np.bincount(labels[keep], minlength=n)
+    mean = np.column_stack([np.bincount(labels[keep], weights=err[keep, j], minlength=n) for j in range(6)])
+    mean = mean[cnt > 0] / cnt[cnt > 0, None]
+    return _rms(mean[:, :3]), _rms(mean[:, 3:])
 
 
 def main() -> None:
@@ -156,6 +176,7 @@ def main() -> None:
     held = [run_campaign("heldout_soaks", HELDOUT_SOAKS, work, sim, args.seed + 100),
             run_campaign("heldout_heating", HELDOUT_HEATING, work, sim, args.seed + 101)]
     frames = {h.name: load_campaign_data(h.db).frame for h in held}
+    labels = {h.name: record_labels(h.db, frames[h.name]) for h in held}
     px4 = None
     ramp = next((r for r in runs if r.name == "ramp"), None)
     if ramp is not None:
@@ -176,7 +197,7 @@ def main() -> None:
     def errs_for(model: Path | None, p4=None) -> list[float]:
         out: list[float] = []
         for name in ("heldout_soaks", "heldout_heating"):
-            acc, gyr = heldout_errors(model, p4, frames[name])
+            acc, gyr = heldout_errors(model, p4, frames[name], labels[name])
             out += [acc * 1000.0, gyr]
         return out
 
