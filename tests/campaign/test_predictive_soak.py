@@ -160,7 +160,9 @@ def test_predictive_parameters_are_validated_with_a_located_message(soak_yaml, w
 
 
 class LaggingImu(FakeImu):
-    """The fake IMU whose temperature follows the chamber air with a first-order lag of TAU."""
+    """The fake IMU whose temperature follows the chamber air with a first-order lag of `tau_s`."""
+
+    tau_s = TAU
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
@@ -170,7 +172,7 @@ class LaggingImu(FakeImu):
     def _temp_c(self) -> float:
         now = self.clock.now()
         air = self.chamber.air_c()
-        self._temp = air + (self._temp - air) * math.exp(-(now - self._t_last) / TAU)
+        self._temp = air + (self._temp - air) * math.exp(-(now - self._t_last) / self.tau_s)
         self._t_last = now
         return self._temp
 
@@ -193,12 +195,13 @@ fit: {run: false}
 """
 
 
-def _lagged_run(tmp_path, criterion: str):
+def _lagged_run(tmp_path, criterion: str, tau_s: float = TAU):
     (tmp_path / criterion).mkdir()
     c = Campaign(tmp_path / criterion, PROC.replace("CRITERION", criterion))
     lab = FakeLab(VirtualClock())
     lab.chamber.ramp_c_per_s = 10.0  # the air steps: the IMU's approach is the pure first-order lag
     lab.imu = LaggingImu(lab.clock, lab.chamber, lab.table)
+    lab.imu.tau_s = tau_s
     lab.operator.imu = lab.imu
     runner = c.runner(lab)
     runner.run()
@@ -227,3 +230,18 @@ def test_the_sequencer_logs_the_predictive_decision_and_saves_lab_time(tmp_path)
     finally:
         strict.store.close()
         pred.store.close()
+
+
+def test_the_sequencer_logs_a_fallback_and_the_spread_decides(tmp_path):
+    # A sensor lagging by ~a day: over the fit window the IMU drifts almost linearly, no time constant
+    # below predict_tau_max_s: each soak falls back, and the spread (tiny drift) ends it.
+    c, _ = _lagged_run(tmp_path, "predictive", tau_s=1e6)
+    try:
+        ev = c.events()
+        fell = ev[ev.message.str.contains("falls back to the spread criterion")]
+        assert len(fell) == 2 and (fell.kind == "warning").all()
+        assert all("on the bound of the search" in m for m in fell.message)
+        soaked = ev[ev.message.str.startswith("soaked at")]
+        assert len(soaked) == 2 and not soaked.message.str.contains("predictive").any()
+    finally:
+        c.store.close()
