@@ -58,6 +58,7 @@ def _rows(db: str | Path, sql: str, **params: object) -> list[tuple]:
         engine.dispose()
 
 
+@pytest.mark.timeout(900)  # 40 CLI processes: on a loaded 2-core machine more than the default 300 s
 def test_two_resumes_at_the_same_instant_never_both_record(tmp_path, tiny, store_db):
     db = _paused(store_db, tiny)
     trials = 20
