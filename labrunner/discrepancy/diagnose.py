@@ -372,14 +372,20 @@ class _Diagnoser:
             if f.status == "selected" and f.cause in by_term:
                 own = self.searcher.own_evaluation(spec, rho, by_term[f.cause])
                 f.stability = finding_stability(self.searcher, spec, rho, by_term[f.cause], own.holdout, masks)
+        # Only a cause turned down for want of evidence can be a near miss; one whose evidence cleared
+        # the threshold but failed the checks beyond it (raw held-out RMS, its signature) is not.
         last = [ev for ev in (result.steps[-1].evaluations if result.steps else [])
-                if ev.term not in by_term and ev.delta]
+                if ev.term not in by_term and ev.delta and ev.score <= self.options.min_evidence]
         if not last:
             return None
         best = max(last, key=lambda ev: max(ev.delta.values()))
-        channels = [c for c, d in best.delta.items() if d > 0] or [max(best.delta, key=best.delta.__getitem__)]
+        channels = list(best.channels) or [max(best.delta, key=best.delta.__getitem__)]
         share = stability(self.searcher, spec, rho, Selected.make(best.term, best.theta, channels), best.holdout,
                           masks)
+        if share.whole_score > self.options.min_evidence:
+            # Judged this way it would pass on the whole log too: it was turned down by the selection's
+            # own channel and drift rules, not on evidence, and is no near miss of the resamples.
+            return None
         return {"cause": best.term, "channels": channel_list(set(channels)), "evidence_score": _finite(best.score),
                 "stability": {"selected_share": round(share.selected_share, 2), "subsamples": share.subsamples}}
 

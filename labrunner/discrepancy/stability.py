@@ -33,6 +33,7 @@ LEVEL = 0.8  # selected on at least this share of the draws: stable; below: unce
 class Stability:
     selected_share: float  # of the draws on which the cause clears the evidence threshold
     subsamples: int
+    whole_score: float = float("nan")  # the same score on the whole log (all blocks)
 
     @property
     def uncertain(self) -> bool:
@@ -67,15 +68,19 @@ def stability(searcher: Searcher, base: Spec, rho: dict[str, int], sel: Selected
         before[c], after[c] = engine.block_contributions(s0), engine.block_contributions(s1)
         added[c] = max(s1.cv.n_params - s0.cv.n_params, 1)
     passed = 0
-    for mask in masks:
+    whole = np.ones(next(iter(before.values())).size, dtype=bool) if before else None
+    for mask in ([whole] if whole is not None else []) + masks:
         n = int(mask.sum())
         score = -pen * term.free_nonlinear
         for c in before:
             b, a = float(before[c][mask].sum()), float(after[c][mask].sum())
             delta = n * float(np.log(max(b, 1e-300) / max(a, 1e-300))) - pen * added[c]
             score += max(delta, 0.0)
+        if mask is whole:
+            full = score  # the whole log's score by the same arithmetic
+            continue
         passed += score > searcher.min_evidence
-    return Stability(passed / len(masks), len(masks))
+    return Stability(passed / len(masks), len(masks), full if before else -np.inf)
 
 
 def finding_stability(searcher: Searcher, spec: Spec, rho: dict[str, int], sel: Selected, holdout: str,
