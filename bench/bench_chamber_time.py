@@ -112,7 +112,7 @@ def run_campaign(name: str, text: str, work: Path, sim: Path, seed: int) -> Run:
     with Store.open_existing(db) as s:
         info = s.campaign(1)
         steps = s.steps_frame(1)
-        return Run(name, db, fit_dir / "campaign-1", (info.clock_last - info.clock_t0) / 3600.0,
+        return Run(name, db, fit_dir, (info.clock_last - info.clock_t0) / 3600.0,
                    int(steps.n_samples.sum()), wall)
 
 
