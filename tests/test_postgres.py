@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 
 import pytest
-from sqlalchemy import create_engine, text
 
 import labrunner
 from labrunner.errors import UserError
@@ -20,21 +19,12 @@ from labrunner.store import Store
 from labrunner.store_address import is_store, store_address
 from tests import pg_server
 from tests.campaign.conftest import TINY, cli
+from tests.store_sql import store_rows
 
 FULL_DISK_CLI = Path(__file__).parent / "campaign" / "full_disk_cli.py"
 # Four temperatures (the cubic thermal fit needs them), the end-of-run fit on: it writes summary.md.
 FITTED = (TINY.replace("list_c: [15, 35]", "list_c: [-10, 10, 30, 50]").replace("record_s: 4", "record_s: 6")
           .replace("fit: {run: false}", "fit: {run: true, polynomial_order: 3, rbf: false}"))
-
-
-def _sql(url: str, statement: str, **params: object) -> list[tuple]:
-    engine = create_engine(store_address(url).url)
-    try:
-        with engine.begin() as conn:
-            result = conn.execute(text(statement), params)
-            return [tuple(r) for r in result] if result.returns_rows else []
-    finally:
-        engine.dispose()
 
 
 def _main(capsys: pytest.CaptureFixture[str], *args: object) -> subprocess.CompletedProcess[str]:
@@ -107,7 +97,7 @@ def test_a_url_creates_no_local_file(pg_url: str, tmp_path: Path, monkeypatch: p
     r = _main(capsys, "run", "tiny.yaml", "--sim", "--db", pg_url, "--quiet")
     assert r.returncode == 0, r.stderr[-2000:]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.yaml"]  # the data went to the server
-    assert _sql(pg_url, "SELECT count(*) FROM steps WHERE status = 'done'") == [(36,)]
+    assert store_rows(pg_url, "SELECT count(*) FROM steps WHERE status = 'done'") == [(36,)]
 
 
 # --- every command, and the password nowhere -------------------------------------------------------------------
@@ -135,12 +125,12 @@ def test_a_password_in_the_url_is_never_shown(pg_cluster: pg_server.PgServer, tm
     for path in out.rglob("*"):
         if path.is_file():
             assert pg_server.PASSWORD.encode() not in path.read_bytes(), path
-    stored = json.dumps(_sql(url, "SELECT lab_config, sim_config, procedure_path FROM campaigns")
-                        + _sql(url, "SELECT provenance, result FROM fits")
-                        + _sql(url, "SELECT message, detail FROM events"))
+    stored = json.dumps(store_rows(url, "SELECT lab_config, sim_config, procedure_path FROM campaigns")
+                        + store_rows(url, "SELECT provenance, result FROM fits")
+                        + store_rows(url, "SELECT message, detail FROM events"))
     assert pg_server.PASSWORD not in stored
-    assert _sql(url, "SELECT count(*) FROM fits") == [(2,)]  # the end-of-run fit and `fit`'s, stored back
-    assert masked in json.loads(_sql(url, "SELECT provenance FROM fits ORDER BY id DESC LIMIT 1")[0][0])["source"]
+    assert store_rows(url, "SELECT count(*) FROM fits") == [(2,)]  # the end-of-run fit and `fit`'s, stored back
+    assert masked in json.loads(store_rows(url, "SELECT provenance FROM fits ORDER BY id DESC LIMIT 1")[0][0])["source"]
 
 
 def test_the_password_from_pgpassword_or_pgpass(pg_cluster: pg_server.PgServer, tmp_path: Path,
@@ -199,7 +189,7 @@ def test_a_new_campaign_takes_the_id_it_checked(pg_cluster: pg_server.PgServer, 
     with labrunner.start_run(procedure, db=pg_url, fit_out=tmp_path / "f") as session:
         assert session.campaign_id == 2
         assert session.runner is not None and session.runner.fit_out_dir == tmp_path / "f"
-    assert _sql(pg_url, "SELECT id FROM campaigns") == [(2,)]
+    assert store_rows(pg_url, "SELECT id FROM campaigns") == [(2,)]
 
 
 # --- errors -----------------------------------------------------------------------------------------------------
@@ -231,7 +221,7 @@ def test_a_server_that_cannot_be_used_gets_one_line(pg_cluster: pg_server.PgServ
 
 
 def test_a_foreign_database_is_not_taken_over(pg_url: str, tiny: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    _sql(pg_url, "CREATE TABLE campaigns (x int)")
+    store_rows(pg_url, "CREATE TABLE campaigns (x int)")
     line = _one_line(_main(capsys, "run", tiny, "--sim", "--db", pg_url), 2)
     assert "not a labrunner database (it holds table campaigns but no labrunner_meta)" in line
 
@@ -248,22 +238,22 @@ def test_check_db_on_a_clean_server_store(pg_cluster: pg_server.PgServer, done_d
 def test_bad_json_and_a_short_blob_are_named(pg_cluster: pg_server.PgServer, done_db: str, tmp_path: Path,
                                              capsys: pytest.CaptureFixture[str]) -> None:
     url = _copy(pg_cluster, done_db)
-    _sql(url, "UPDATE campaigns SET lab_config = '{not json'")
-    block, n = _sql(url, "SELECT id, n FROM sample_blocks WHERE kind = 'record' AND step_idx = 5")[0]
-    _sql(url, "UPDATE sample_blocks SET accel_g = substring(accel_g from 1 for 100) WHERE id = :id", id=block)
+    store_rows(url, "UPDATE campaigns SET lab_config = '{not json'")
+    block, n = store_rows(url, "SELECT id, n FROM sample_blocks WHERE kind = 'record' AND step_idx = 5")[0]
+    store_rows(url, "UPDATE sample_blocks SET accel_g = substring(accel_g from 1 for 100) WHERE id = :id", id=block)
     line = _one_line(cli("status", url), 2)
     assert "campaign 1, table campaigns: column lab_config is not JSON" in line, line
-    _sql(url, "UPDATE campaigns SET lab_config = '{}'")
+    store_rows(url, "UPDATE campaigns SET lab_config = '{}'")
     where = f"campaign 1, table sample_blocks, step 5 (block {block}): column accel_g holds 100 bytes"
     for args in (("export", url, "--csv", tmp_path / "out.csv"), ("fit", url)):
         line = _one_line(_main(capsys, *args), 2)
         assert where in line and f"{n} samples need" in line, line
-    _sql(url, "UPDATE campaigns SET lab_config = '{x'")
+    store_rows(url, "UPDATE campaigns SET lab_config = '{x'")
     r = _main(capsys, "check", "--db", url)
     assert r.returncode == 2, r.stdout + r.stderr
     assert "campaign 1, table campaigns, row 1: column lab_config is not JSON" in r.stdout
     assert where in r.stdout
-    _sql(url, "UPDATE labrunner_meta SET value = 'x7' WHERE key = 'schema_version'")
+    store_rows(url, "UPDATE labrunner_meta SET value = 'x7' WHERE key = 'schema_version'")
     assert "table labrunner_meta: schema version 'x7'" in _one_line(_main(capsys, "list", url), 2)
 
 
@@ -299,7 +289,7 @@ def test_a_server_stopped_mid_run_leaves_the_lab_safe_and_resume_finishes(pg_clu
     deadline = time.monotonic() + 120
     while True:
         try:
-            if _sql(pg_url, "SELECT count(*) FROM steps WHERE status = 'done'")[0][0] >= 5:
+            if store_rows(pg_url, "SELECT count(*) FROM steps WHERE status = 'done'")[0][0] >= 5:
                 break
         except Exception:  # the schema is not there yet
             pass
@@ -318,7 +308,7 @@ def test_a_server_stopped_mid_run_leaves_the_lab_safe_and_resume_finishes(pg_clu
     assert sim["chamber_setpoint_c"] == 23.0
     st = cli("status", pg_url, check=0).stdout
     assert re.search(r"status\s+(failed|running \(process gone: resume it\))", st), st
-    done_before = _sql(pg_url, "SELECT count(*) FROM steps WHERE status = 'done'")[0][0]
+    done_before = store_rows(pg_url, "SELECT count(*) FROM steps WHERE status = 'done'")[0][0]
     assert done_before >= 5
     res = cli("resume", pg_url, "--quiet")
     assert res.returncode == 0, res.stderr[-3000:]

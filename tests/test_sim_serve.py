@@ -1,6 +1,5 @@
 """`labrunner sim serve` in its own process, driven by a plain pymodbus client and by the project's drivers."""
 
-import json
 import subprocess
 import sys
 import time
@@ -9,21 +8,15 @@ import pytest
 import yaml
 from pymodbus.client import ModbusTcpClient
 
+from tests.served_lab import run_answering, serve, stop
+
 
 @pytest.fixture
 def served(tmp_path):
     lab_yaml = tmp_path / "lab.yaml"
-    proc = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "sim", "serve", "--speed", "600",
-                             "--lab-config", str(lab_yaml)], stdout=subprocess.PIPE, text=True)
-    info = None
-    for line in proc.stdout:
-        if line.strip().startswith("ready "):
-            info = json.loads(line.split("ready ", 1)[1])
-            break
-    assert info is not None, "sim serve did not report ready"
+    proc, info = serve(lab_yaml, "--speed", "600")
     yield info, lab_yaml
-    proc.terminate()
-    proc.wait(10)
+    stop(proc)
 
 
 def test_independent_client_watches_the_chamber_cool(served):
@@ -80,14 +73,7 @@ table: {language: ideal_aerosmith}
 
 def _serve(tmp_path, *extra):
     lab_yaml = tmp_path / "lab.yaml"
-    proc = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "sim", "serve", "--lab-config", str(lab_yaml),
-                             *map(str, extra)], stdout=subprocess.PIPE, text=True)
-    info = None
-    for line in proc.stdout:
-        if line.strip().startswith("ready "):
-            info = json.loads(line.split("ready ", 1)[1])
-            break
-    assert info is not None, "sim serve did not report ready"
+    proc, info = serve(lab_yaml, *extra)
     return proc, info, lab_yaml
 
 
@@ -127,17 +113,8 @@ def test_quick_run_against_a_served_f4_in_fahrenheit_and_an_ideal_aerosmith_tabl
     assert "installed drivers:" in checked.stdout and "serial_table (table:" in checked.stdout
 
     db = tmp_path / "served.db"
-    p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(_quick_z_up(tmp_path)), "--lab",
-                          str(lab_yaml), "--db", str(db), "--quiet"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    err = []
-    for line in p.stderr:  # the operator: Enter at each prompt, once it is shown
-        err.append(line)
-        if line.startswith(">>> Press Enter"):
-            p.stdin.write("\n")
-            p.stdin.flush()
-    p.wait(240)
-    assert p.returncode == 0, "".join(err)[-3000:]
+    code, err = run_answering("run", _quick_z_up(tmp_path), "--lab", lab_yaml, "--db", db, "--quiet", timeout=240)
+    assert code == 0, err[-3000:]
     from labrunner.store import Store
 
     with Store.open_existing(db) as store:

@@ -14,6 +14,7 @@ import labrunner
 from labrunner.calibration.compensation import compensate
 from labrunner.calibration.export import load_model
 from labrunner.cli import main
+from tests.campaign.conftest import TINY as CAMPAIGN_TINY
 
 OUT = ["ax_g", "ay_g", "az_g", "gx_dps", "gy_dps", "gz_dps"]
 
@@ -69,17 +70,9 @@ def test_compensate_errors_are_one_located_line(fitted: Path, tmp_path: Path, ca
     assert "Traceback" not in capsys.readouterr().err
 
 
-TINY = """\
-name: tiny
-temperatures: {list_c: [15, 35]}
-soak: {tolerance_c: 0.5, stable_window_s: 120, max_wait_s: 7200, on_timeout: continue, poll_s: 30}
-orientations: [x_up, x_down, y_up, y_down, z_up, z_down]
-remount_s: 60
-rates: {list_dps: [-50, 0, 50]}
-settle_s: 1
-record_s: 10
-record_poll_s: 2
-"""
+# The campaign tests' tiny procedure with 10 s records (a calibration record is at least 5 s), the end-of-run fit on.
+TINY = CAMPAIGN_TINY.replace("record_s: 4", "record_s: 10").replace("fit: {run: false}\n", "")
+assert "record_s: 10" in TINY
 
 
 def test_compensate_a_dry_runs_store(tmp_path: Path, capsys) -> None:

@@ -9,19 +9,11 @@ import pytest
 
 import labrunner
 from labrunner.cli import main
+from tests.campaign.conftest import TINY as CAMPAIGN_TINY
 
-TINY = """\
-name: tiny
-temperatures: {list_c: [15, 35]}
-soak: {tolerance_c: 0.5, stable_window_s: 120, max_wait_s: 7200, on_timeout: continue, poll_s: 30}
-orientations: [x_up, x_down, y_up, y_down, z_up, z_down]
-remount_s: 60
-rates: {list_dps: [-50, 0, 50]}
-settle_s: 1
-record_s: 10
-record_poll_s: 2
-fit: {run: false}
-"""
+# The campaign tests' tiny procedure with 10 s records (a calibration record is at least 5 s).
+TINY = CAMPAIGN_TINY.replace("record_s: 4", "record_s: 10")
+assert "record_s: 10" in TINY
 
 
 @pytest.fixture(scope="module")

@@ -15,13 +15,12 @@ import time
 from pathlib import Path
 
 import pytest
-from sqlalchemy import create_engine, text
 
 import labrunner
 from labrunner.runner.lease import STALE_AFTER_S
 from labrunner.store import SCHEMA_VERSION, LeaseLost, Store
-from labrunner.store_address import store_address
 from tests.campaign.conftest import cli
+from tests.store_sql import store_rows
 
 RACER = Path(__file__).with_name("lease_race_cli.py")
 HOST = os.uname().nodename
@@ -47,17 +46,6 @@ def _wait_for(*paths: Path, timeout: float = 60.0) -> None:
         time.sleep(0.01)
 
 
-def _rows(db: str | Path, sql: str, **params: object) -> list[tuple]:
-    """Rows of a statement run on the store's database itself (either backend), committed."""
-    engine = create_engine(store_address(db).url)
-    try:
-        with engine.begin() as conn:
-            result = conn.execute(text(sql), params)
-            return [tuple(r) for r in result] if result.returns_rows else []
-    finally:
-        engine.dispose()
-
-
 @pytest.mark.timeout(900)  # 40 CLI processes: on a loaded 2-core machine more than the default 300 s
 def test_two_resumes_at_the_same_instant_never_both_record(tmp_path, tiny, store_db):
     db = _paused(store_db, tiny)
@@ -80,20 +68,20 @@ def test_two_resumes_at_the_same_instant_never_both_record(tmp_path, tiny, store
         if trial:  # the previous winner died holding the lease: stale at once on this host, and said so
             assert "is gone from this host" in out[winner][1], out[winner][1]
         # The store: one more recorded step per trial, each step once, no monitor stretch twice.
-        assert _rows(db, "SELECT count(*) FROM sample_blocks WHERE kind = 'record'") == [(trial + 1,)]
-        assert _rows(db, "SELECT count(*) FROM steps WHERE status = 'done'") == [(trial + 1,)]
-        assert _rows(db, "SELECT step_idx FROM sample_blocks WHERE kind = 'record' GROUP BY step_idx "
+        assert store_rows(db, "SELECT count(*) FROM sample_blocks WHERE kind = 'record'") == [(trial + 1,)]
+        assert store_rows(db, "SELECT count(*) FROM steps WHERE status = 'done'") == [(trial + 1,)]
+        assert store_rows(db, "SELECT step_idx FROM sample_blocks WHERE kind = 'record' GROUP BY step_idx "
                          "HAVING count(*) > 1") == []
-        assert _rows(db, "SELECT t0_s FROM sample_blocks WHERE kind = 'monitor' GROUP BY t0_s "
+        assert store_rows(db, "SELECT t0_s FROM sample_blocks WHERE kind = 'monitor' GROUP BY t0_s "
                          "HAVING count(*) > 1") == []
-        assert _rows(db, "SELECT pid FROM campaigns") == [(racers[winner].pid,)]
-    sessions = _rows(db, "SELECT count(*) FROM events WHERE message LIKE 'campaign % at step %'")
+        assert store_rows(db, "SELECT pid FROM campaigns") == [(racers[winner].pid,)]
+    sessions = store_rows(db, "SELECT count(*) FROM events WHERE message LIKE 'campaign % at step %'")
     assert sessions == [(trials + 1,)]  # the run, then each winner; the losers wrote nothing, not even a start
 
 
 def _hold(db: str | Path, *, host: str, pid: int, age_s: float) -> None:
     """Make the campaign look held by another process (as that process's heartbeat would leave it)."""
-    _rows(db, "UPDATE campaigns SET status = 'running', lease_token = 'elsewhere', pid = :pid, host = :host, "
+    store_rows(db, "UPDATE campaigns SET status = 'running', lease_token = 'elsewhere', pid = :pid, host = :host, "
               "lease_wall = :wall", pid=pid, host=host, wall=time.time() - age_s)
 
 
@@ -108,8 +96,8 @@ def test_live_lease_of_another_host_is_refused_even_with_take_over(tmp_path, tin
         age = re.search(r"last heartbeat ([0-9]+) s ago", line)
         assert "pid 4242 on lab-pc-2" in line and age and 5 <= int(age.group(1)) < STALE_AFTER_S, line
         assert len(line.splitlines()) == 1 and "Traceback" not in line
-    assert _rows(db, "SELECT lease_token, host FROM campaigns") == [("elsewhere", "lab-pc-2")]
-    assert _rows(db, "SELECT count(*) FROM events WHERE message LIKE 'campaign % at step %'") == [(1,)]
+    assert store_rows(db, "SELECT lease_token, host FROM campaigns") == [("elsewhere", "lab-pc-2")]
+    assert store_rows(db, "SELECT count(*) FROM events WHERE message LIKE 'campaign % at step %'") == [(1,)]
     # status and list believe a fresh heartbeat of another host (its pid cannot be looked at here)
     assert "process gone" not in cli("status", db, check=0).stdout
     assert "pid 4242 on lab-pc-2" in cli("list", db, check=0).stdout
@@ -118,12 +106,12 @@ def test_live_lease_of_another_host_is_refused_even_with_take_over(tmp_path, tin
 def test_stale_lease_is_taken_only_with_take_over(tmp_path, tiny, store_db):
     db = _paused(store_db, tiny)
     _hold(db, host="lab-pc-2", pid=4242, age_s=STALE_AFTER_S + 30)
-    _rows(db, "UPDATE campaigns SET updated_wall = lease_wall")  # the holder's last heartbeat, as it left it
+    store_rows(db, "UPDATE campaigns SET updated_wall = lease_wall")  # the holder's last heartbeat, as it left it
     assert "pid 4242 on lab-pc-2 (stale: resume --take-over" in cli("list", db, check=0).stdout
     r = cli("resume", db, "--quiet", timeout=60)
     assert r.returncode == 2, r.stderr
     assert "pid 4242 on lab-pc-2" in r.stderr and "stale" in r.stderr and "--take-over" in r.stderr, r.stderr
-    assert _rows(db, "SELECT lease_token FROM campaigns") == [("elsewhere",)]
+    assert store_rows(db, "SELECT lease_token FROM campaigns") == [("elsewhere",)]
 
     (tmp_path / "other-0").touch()  # no other racer: the taker records one step and dies
     taker = _racer(tmp_path, 0, "me", "other", "resume", str(db), "--quiet", "--take-over")
@@ -132,9 +120,9 @@ def test_stale_lease_is_taken_only_with_take_over(tmp_path, tiny, store_db):
     _out, err = taker.communicate(timeout=60)
     assert (tmp_path / "me-0").read_text() == "recorded", err
     assert "taken over from pid 4242 on lab-pc-2" in err, err
-    token, pid, host = _rows(db, "SELECT lease_token, pid, host FROM campaigns")[0]
+    token, pid, host = store_rows(db, "SELECT lease_token, pid, host FROM campaigns")[0]
     assert token != "elsewhere" and (pid, host) == (taker.pid, HOST)
-    assert _rows(db, "SELECT count(*) FROM sample_blocks WHERE kind = 'record'") == [(1,)]
+    assert store_rows(db, "SELECT count(*) FROM sample_blocks WHERE kind = 'record'") == [(1,)]
 
 
 def test_a_lease_taken_over_stops_the_old_holder_writing(tiny, store_db):
@@ -153,13 +141,13 @@ def test_a_lease_taken_over_stops_the_old_holder_writing(tiny, store_db):
         store.release_lease(1)  # not ours any more: left as the taker's
     finally:
         store.close()
-    assert _rows(db, "SELECT lease_token, clock_last FROM campaigns")[0][0] == "elsewhere"
-    assert _rows(db, "SELECT count(*) FROM events WHERE message = 'must not be written'") == [(0,)]
+    assert store_rows(db, "SELECT lease_token, clock_last FROM campaigns")[0][0] == "elsewhere"
+    assert store_rows(db, "SELECT count(*) FROM events WHERE message = 'must not be written'") == [(0,)]
 
 
 def test_a_run_holds_its_campaign_and_releases_it_at_the_end(tiny, store_db):
     db = _paused(store_db, tiny)
-    assert _rows(db, "SELECT lease_token, lease_wall FROM campaigns") == [(None, None)]  # released
+    assert store_rows(db, "SELECT lease_token, lease_wall FROM campaigns") == [(None, None)]  # released
 
 
 def test_a_schema_1_store_is_migrated_when_opened(tmp_path, tiny):  # SQLite's: no schema-1 store on PostgreSQL
@@ -169,6 +157,6 @@ def test_a_schema_1_store_is_migrated_when_opened(tmp_path, tiny):  # SQLite's: 
         conn.execute("ALTER TABLE campaigns DROP COLUMN lease_wall")
         conn.execute("UPDATE labrunner_meta SET value = '1' WHERE key = 'schema_version'")
     assert "paused" in cli("list", db, check=0).stdout
-    assert _rows(db, "SELECT value FROM labrunner_meta WHERE key = 'schema_version'") == [(str(SCHEMA_VERSION),)]
-    columns = [r[1] for r in _rows(db, "PRAGMA table_info(campaigns)")]
+    assert store_rows(db, "SELECT value FROM labrunner_meta WHERE key = 'schema_version'") == [(str(SCHEMA_VERSION),)]
+    columns = [r[1] for r in store_rows(db, "PRAGMA table_info(campaigns)")]
     assert "lease_token" in columns and "lease_wall" in columns

@@ -1,7 +1,6 @@
 """Rehearsal against `labrunner sim serve` in another process, through a lab configuration, in real time
 (sped up): the operator answers at the terminal, and a second Ctrl-C during a record aborts to a safe state."""
 
-import json
 import signal
 import subprocess
 import sys
@@ -11,6 +10,7 @@ import time
 import pytest
 
 from labrunner.store import Store
+from tests.served_lab import serve, stop
 
 from .conftest import popen
 
@@ -30,15 +30,9 @@ fit: {run: false}
 @pytest.fixture
 def served_lab(tmp_path):
     lab_yaml = tmp_path / "lab.yaml"
-    proc = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "sim", "serve", "--speed", "50",
-                             "--lab-config", str(lab_yaml)], stdout=subprocess.PIPE, text=True)
-    for line in proc.stdout:
-        if line.startswith("  ready "):
-            json.loads(line.split("ready ", 1)[1])
-            break
+    proc, _ = serve(lab_yaml, "--speed", "50")
     yield lab_yaml
-    proc.terminate()
-    proc.wait(10)
+    stop(proc)
 
 
 class _OperatorAtTerminal:

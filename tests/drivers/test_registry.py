@@ -1,7 +1,6 @@
 """Drivers by name: the entry-point registry, lab configurations naming drivers, and a third-party
 driver package installed during the test and found through the `labrunner.drivers` group."""
 
-import json
 import os
 import shutil
 import subprocess
@@ -18,6 +17,7 @@ from labrunner.drivers.protocols import RateTable
 from labrunner.drivers.rate_table import SerialRateTable
 from labrunner.lab import LabConfig, build_drivers, lab_config_from_dict, load_lab_config, resolve_drivers
 from labrunner.yaml_config import ConfigError
+from tests.served_lab import run_answering, serve, stop
 
 ROOT = Path(__file__).resolve().parents[2]
 LAB = {"chamber": {"driver": "watlow_f4", "port": 1502}, "table": {"driver": "ideal_aerosmith", "port": "/dev/null"},
@@ -166,13 +166,8 @@ fit: {run: false}
 
 def test_a_run_and_a_ping_use_the_third_party_driver(acme, tmp_path):
     lab_yaml = tmp_path / "served.yaml"
-    serve = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "sim", "serve", "--speed", "100",
-                              "--lab-config", str(lab_yaml)], stdout=subprocess.PIPE, text=True, env=acme)
+    served, _ = serve(lab_yaml, "--speed", "100", env=acme)
     try:
-        for line in serve.stdout:
-            if line.strip().startswith("ready "):
-                json.loads(line.split("ready ", 1)[1])
-                break
         import yaml
 
         lab = yaml.safe_load(lab_yaml.read_text())
@@ -187,17 +182,9 @@ def test_a_run_and_a_ping_use_the_third_party_driver(acme, tmp_path):
 
         (tmp_path / "p.yaml").write_text(PROC)
         db = tmp_path / "acme.db"
-        p = subprocess.Popen([sys.executable, "-m", "labrunner.cli", "run", str(tmp_path / "p.yaml"), "--lab",
-                              str(acme_lab), "--db", str(db), "--quiet"], stdin=subprocess.PIPE,
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=acme)
-        err = []
-        for line in p.stderr:  # the operator answers the remount prompt once it is shown
-            err.append(line)
-            if line.startswith(">>> Press Enter"):
-                p.stdin.write("\n")
-                p.stdin.flush()
-        p.wait(120)
-        assert p.returncode == 0, "".join(err)[-3000:]
+        code, err = run_answering("run", tmp_path / "p.yaml", "--lab", acme_lab, "--db", db, "--quiet",
+                                  timeout=120, env=acme)
+        assert code == 0, err[-3000:]
         from labrunner.store import Store
 
         with Store.open_existing(db) as store:
@@ -218,5 +205,4 @@ def test_a_run_and_a_ping_use_the_third_party_driver(acme, tmp_path):
                 "RateTable (drivers.protocols): missing close, identity, jog, max_rate_dps, status, stop, velocity"
                 ) in r.stderr
     finally:
-        serve.terminate()
-        serve.wait(10)
+        stop(served)
