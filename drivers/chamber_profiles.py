@@ -19,8 +19,10 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Mapping
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import Any
+
+from .named_spec import from_spec
 
 ENCODINGS = ("int16_tenths", "float32_lwf", "float32_hwf")  # int16_tenths: 10**-decimals counts (1 unless read)
 
@@ -163,24 +165,4 @@ PROFILES: dict[str, ChamberProfile] = {
 
 def profile_from(spec: str | Mapping[str, Any]) -> ChamberProfile:
     """A profile by name, or from a mapping (a custom map in the lab configuration)."""
-    if isinstance(spec, str):
-        try:
-            return PROFILES[spec]
-        except KeyError:
-            raise ValueError(f"unknown chamber profile {spec!r}; known: {', '.join(PROFILES)}") from None
-    data = dict(spec)
-    base = data.pop("base", None)
-    if base is not None:
-        merged = {f.name: getattr(profile_from(base), f.name) for f in fields(ChamberProfile)}
-        merged.update(data)
-        data = merged
-    known = {f.name for f in fields(ChamberProfile)}
-    unknown = set(data) - known
-    if unknown:
-        raise ValueError(f"chamber profile: unknown key(s) {', '.join(sorted(unknown))}")
-    if "fixed_range_c" in data and data["fixed_range_c"] is not None:
-        data["fixed_range_c"] = tuple(float(v) for v in data["fixed_range_c"])
-    try:
-        return ChamberProfile(**data)
-    except TypeError as exc:
-        raise ValueError(f"chamber profile: {exc}") from None
+    return from_spec(spec, PROFILES, ChamberProfile, "chamber profile", pairs=("fixed_range_c",))

@@ -18,9 +18,11 @@ from __future__ import annotations
 import re
 import string
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
+
+from .named_spec import from_spec
 
 _NUMBER = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
 _NUMERIC_SPECS = "bcdeEfFgGnoxX%"
@@ -181,33 +183,8 @@ LANGUAGES: dict[str, TableLanguage] = {
 
 def language_from(spec: str | Mapping[str, Any] | TableLanguage) -> TableLanguage:
     """A language by name, or from a mapping (`{base: NAME, ...}` overrides a shipped one)."""
-    if isinstance(spec, TableLanguage):
-        return spec
-    if isinstance(spec, str):
-        try:
-            return LANGUAGES[spec]
-        except KeyError:
-            raise ValueError(f"unknown table language {spec!r}; known: {', '.join(LANGUAGES)}") from None
-    data = dict(spec)
-    base = data.pop("base", None)
-    if base is not None:
-        merged: dict[str, Any] = {f.name: getattr(language_from(base), f.name) for f in fields(TableLanguage)}
-        for key in ("commands", "queries", "replies", "status_modes"):  # mappings merge key by key
-            if isinstance(data.get(key), Mapping):
-                data[key] = {**merged[key], **data[key]}
-        merged.update(data)
-        data = merged
-    known = {f.name for f in fields(TableLanguage)}
-    unknown = set(data) - known
-    if unknown:
-        raise ValueError(f"table language: unknown key(s) {', '.join(sorted(unknown))}; known: "
-                         f"{', '.join(sorted(known))}")
-    if data.get("fixed_limits") is not None:
-        data["fixed_limits"] = tuple(float(v) for v in data["fixed_limits"])
-    try:
-        return TableLanguage(**data)
-    except TypeError as exc:
-        raise ValueError(f"table language: {exc}") from None
+    return from_spec(spec, LANGUAGES, TableLanguage, "table language",
+                     merged=("commands", "queries", "replies", "status_modes"), pairs=("fixed_limits",))
 
 
 __all__ = ["LANGUAGES", "TableLanguage", "language_from", "template_fields", "template_regex"]
