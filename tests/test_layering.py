@@ -57,6 +57,7 @@ ROOMS: dict[str, str] = {
     "labrunner.version": "base",
     "labrunner.output_paths": "base",
     "labrunner.store_address": "base",
+    "labrunner.blas_threads": "base",  # threadpoolctl limits for the fits and the diagnosis
     "labrunner": "composition",  # the package's __init__: the public Python API
 }
 

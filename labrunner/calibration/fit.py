@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from labrunner.blas_threads import analysis_threads
 from labrunner.errors import UserError
 from labrunner.version import __version__
 
@@ -305,7 +306,12 @@ def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provena
     Raises `UserError` when the data holds nothing that can be fitted; otherwise fits
     what it can and lists the rest in `FitResult.not_fitted`.
     """
-    opt = options or FitOptions()
+    with analysis_threads():
+        return _fit_campaign(frame, options or FitOptions(), provenance, progress)
+
+
+def _fit_campaign(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str, Any] | None,
+                  progress: Progress | None) -> FitResult:
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if progress:

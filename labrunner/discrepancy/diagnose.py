@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from labrunner.blas_threads import analysis_threads
 from labrunner.domain import CHANNELS
 from labrunner.errors import UserError
 from labrunner.imu.effects import drift_effect
@@ -23,7 +24,6 @@ from labrunner.imu.model import ImuModel
 from .advice import separating_measurement
 from .allan import TARGET as ALLAN_TARGET
 from .allan import AllanCurve, NoiseFit, fit_noise
-from .blas import single_threaded_blas
 from .blocks import make_blocks
 from .coverage import Coverage, assess
 from .crossval import elapsed_s, long_folds, long_segment_length, segment_length, time_folds
@@ -171,7 +171,7 @@ def diagnose(data: pd.DataFrame | Measurements, options: DiagnoseOptions | None 
     options = options or DiagnoseOptions()
     started = time.perf_counter()
     meas = data if isinstance(data, Measurements) else Measurements.from_frame(data)
-    with single_threaded_blas():
+    with analysis_threads():
         return _Diagnoser(meas, options).run(started)
 
 
