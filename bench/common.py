@@ -22,6 +22,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
@@ -107,6 +108,45 @@ class CommandRun:
     measured: Measured
     stdout: str
     stderr: str
+    killed_for_memory: bool = False  # the tree's RSS passed `memory_limit_bytes` and it was killed
+
+
+def _tree(pid: int) -> list[int]:
+    """`pid` and its descendants (from /proc's children lists)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        try:
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo.extend(int(c) for c in (task / "children").read_text().split())
+        except OSError:  # gone meanwhile
+            continue
+    return out
+
+
+def tree_rss_bytes(pid: int) -> int:
+    """Resident memory of `pid` and its descendants now (VmRSS summed; 0 for those gone)."""
+    total = 0
+    for p in _tree(pid):
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) * 1024
+        except OSError:
+            continue
+    return total
+
+
+def _memory_guard(pid: int, limit: int, stop: threading.Event, tripped: threading.Event) -> None:
+    """Kill the process tree of `pid` when its RSS passes `limit` (the machine is shared: no OOM)."""
+    while not stop.wait(0.25):
+        if tree_rss_bytes(pid) > limit:
+            tripped.set()
+            for p in reversed(_tree(pid)[1:]):  # the command (and its children), not the launcher
+                with contextlib.suppress(OSError):
+                    os.kill(p, signal.SIGKILL)
+            return
 
 
 # The command is started by a small launcher process, not by this one: a child's peak RSS counts what
@@ -121,10 +161,11 @@ with open(sys.argv[1], "w") as f:
 """
 
 
-def run_measured(cmd: Sequence[str | Path], *, cwd: str | Path | None = None,
-                 env: dict[str, str] | None = None) -> CommandRun:
+def run_measured(cmd: Sequence[str | Path], *, cwd: str | Path | None = None, env: dict[str, str] | None = None,
+                 memory_limit_bytes: int | None = None) -> CommandRun:
     """Run `cmd` to its end in a child process; its wall, CPU and peak RSS (the child and the children it
-    waited for), and its output. A non-zero exit is returned, not raised: the caller names the failure."""
+    waited for), and its output. A non-zero exit is returned, not raised: the caller names the failure.
+    With `memory_limit_bytes` the command is killed when its resident memory passes it."""
     with tempfile.TemporaryDirectory(prefix="bench-run-") as tmp:
         usage_file = Path(tmp) / "usage.json"
         out_file, err_file = Path(tmp) / "stdout", Path(tmp) / "stderr"
@@ -133,12 +174,23 @@ def run_measured(cmd: Sequence[str | Path], *, cwd: str | Path | None = None,
             proc = subprocess.Popen([sys.executable, "-S", "-c", _LAUNCHER, str(usage_file), *map(str, cmd)],
                                     cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=err,
                                     preexec_fn=_die_with_parent)
+            stop, tripped = threading.Event(), threading.Event()
+            guard = threading.Thread(target=_memory_guard, args=(proc.pid, memory_limit_bytes, stop, tripped),
+                                     daemon=True) if memory_limit_bytes else None
+            if guard:
+                guard.start()
             try:
                 launcher_rc = proc.wait()
             except BaseException:
-                proc.kill()
+                for p in reversed(_tree(proc.pid)):
+                    with contextlib.suppress(OSError):
+                        os.kill(p, signal.SIGKILL)
                 proc.wait()
                 raise
+            finally:
+                stop.set()
+                if guard:
+                    guard.join()
             wall = time.perf_counter() - start
         stdout = out_file.read_bytes().decode(errors="replace")
         stderr = err_file.read_bytes().decode(errors="replace")
@@ -148,7 +200,7 @@ def run_measured(cmd: Sequence[str | Path], *, cwd: str | Path | None = None,
         status, user, system, maxrss_kb = json.loads(usage_file.read_text())
     measured = Measured(wall_s=wall, user_s=user, sys_s=system, peak_rss_bytes=int(maxrss_kb) * 1024,
                         returncode=os.waitstatus_to_exitcode(status))
-    return CommandRun(measured, stdout, stderr)
+    return CommandRun(measured, stdout, stderr, tripped.is_set())
 
 
 class ChildFailed(RuntimeError):

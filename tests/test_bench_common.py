@@ -77,6 +77,11 @@ def test_run_measured_cpu_time_and_exit_code() -> None:
     assert big.measured.peak_rss_bytes - spin.measured.peak_rss_bytes > 250e6
     failed = run_measured([sys.executable, "-c", "import sys; sys.exit(3)"])
     assert failed.measured.returncode == 3
+    grow = run_measured([sys.executable, "-c", "import time\nb = []\nwhile True:\n"
+                                               "    b.append(bytearray(20 * 2**20)); time.sleep(0.02)"],
+                        memory_limit_bytes=300 * 2**20)
+    assert grow.killed_for_memory and grow.measured.returncode == -9
+    assert grow.measured.peak_rss_bytes < 600 * 2**20
     with pytest.raises(RuntimeError, match="cannot run"):
         run_measured(["/nonexistent/labrunner-bench-command"])
 
