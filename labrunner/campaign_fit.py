@@ -33,7 +33,7 @@ def fit_and_store(store: Store, campaign_id: int, fit_cfg: Fit, out_dir: str | P
     provenance = {**data.provenance, "end_of_run": True}
     defaults = FitOptions()
     options = FitOptions(poly_order=fit_cfg.polynomial_order, rbf_variants=defaults.rbf_variants if fit_cfg.rbf else (),
-                         rbf_export=defaults.rbf_export if fit_cfg.rbf else "")
+                         rbf_export=defaults.rbf_export if fit_cfg.rbf else "", thermal_lag_s=fit_cfg.thermal_lag)
     result = fit_campaign(data.frame, options, provenance=provenance)
     stored = store.find_fit(campaign_id, provenance, SAME_DATA_KEYS)
     if stored is None:

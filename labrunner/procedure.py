@@ -96,6 +96,7 @@ RANGES: dict[str, Range] = {
     "mount_check.tries": Range(1, 20, integer=True),
     "resume.chamber_tolerance_c": Range(0.01, 20.0, "C"),
     "fit.polynomial_order": Range(0, 6, integer=True),
+    "fit.thermal_lag_s": Range(1.0, 86400.0, "s", nullable=True),
 }
 MAX_TEMPERATURES = 500
 MAX_RATES = 2000
@@ -282,6 +283,21 @@ class Fit(_Strict):
     run: bool = True
     polynomial_order: int = Field(3, ge=0, le=6)
     rbf: bool = True
+    # The sensing element's lag behind its temperature sensor (labrunner.calibration.thermal_lag_fit): a
+    # time constant (s; the diagnosis's thermal_lag finding), or thermal_lag_auto (searched by the fit).
+    thermal_lag_s: float | None = None
+    thermal_lag_auto: bool = False
+
+    @model_validator(mode="after")
+    def _one_lag(self) -> Fit:
+        if self.thermal_lag_s is not None and self.thermal_lag_auto:
+            raise ValueError("give either thermal_lag_s or thermal_lag_auto: true, not both")
+        return self
+
+    @property
+    def thermal_lag(self) -> float | str | None:
+        """The fit's `thermal_lag_s` option: seconds, "auto" or None."""
+        return "auto" if self.thermal_lag_auto else self.thermal_lag_s
 
 
 class ProcedureModel(_Strict):

@@ -4,6 +4,8 @@ The model is a file `labrunner fit --out` wrote (`polynomial.json`, `rbf.json`) 
 document (its exported model: the network if one was exported, else the polynomial). Every row of the
 data comes out with its compensated outputs (`<column>_comp`) and a flag, `extrapolated`, for rows whose
 temperature (or network input) lies outside what the model was fitted to: flagged, not refused.
+A model fitted at the lag-corrected temperature carries its `temperature_filter`: the rows' temperature
+goes through it (per run, at the rows' times) before the model, as in the fit and the C header.
 """
 
 from __future__ import annotations
@@ -20,9 +22,10 @@ from labrunner.campaign_csv import OUTPUT_COLUMNS
 from labrunner.errors import UserError
 
 from .compensation import compensate
-from .export import FORMAT, model_from_dict
+from .export import FORMAT, filter_from_dict, model_from_dict
 from .ins import DEFAULT_WINDOW_S, InsErrors, ins_errors, window_rows
 from .rbf_model import RbfModel
+from .thermal_lag_fit import TemperatureFilter
 from .thermal_poly import PolyModel
 
 log = logging.getLogger(__name__)
@@ -37,6 +40,14 @@ class ModelFile:
     model: PolyModel | RbfModel
     name: str  # "polynomial", "rbf_hybrid", ...
     path: str
+    temperature_filter: TemperatureFilter | None = None  # the model's temperature: the logged one through it
+
+    def model_temperature(self, frame: pd.DataFrame) -> np.ndarray:
+        """The temperature the model takes for the frame's rows (lag-corrected if the model says so)."""
+        temp = frame["imu_temp_c"].to_numpy(dtype=float)
+        if self.temperature_filter is None:
+            return temp
+        return self.temperature_filter.apply(frame["t_s"].to_numpy(dtype=float), temp, frame["run"].to_numpy())
 
     @property
     def temp_range_c(self) -> tuple[float, float]:
@@ -71,10 +82,11 @@ def read_model(path: str | Path) -> ModelFile:
         raise UserError(f"{p}: no model in the file")
     try:
         model = model_from_dict(d)
+        temperature_filter = filter_from_dict(d)
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise UserError(f"{p}: the model is incomplete or malformed ({type(exc).__name__}: {exc})") from None
     name = "polynomial" if isinstance(model, PolyModel) else f"rbf_{model.variant}"
-    return ModelFile(model=model, name=name, path=str(p))
+    return ModelFile(model=model, name=name, path=str(p), temperature_filter=temperature_filter)
 
 
 @dataclass(frozen=True)
@@ -98,7 +110,7 @@ def compensate_data(model: ModelFile, frame: pd.DataFrame) -> CompensatedData:
     """The same rows with `<output>_comp` columns and `extrapolated` (0/1) added."""
     y = np.column_stack([frame[c].to_numpy(dtype=float) for c in OUTPUT_COLUMNS])
     temp = frame["imu_temp_c"].to_numpy(dtype=float)
-    comp = compensate(model.model, y, temp)
+    comp = compensate(model.model, y, model.model_temperature(frame))
     out = frame.copy()
     for j, c in enumerate(OUTPUT_COLUMNS):
         out[c + COMP_SUFFIX] = comp.values[:, j]
@@ -121,5 +133,5 @@ def ins_of(model: ModelFile, frame: pd.DataFrame, window_s: float = DEFAULT_WIND
     if win.size == 0:
         return {}
     rows = win.ravel()
-    comp = compensate(model.model, a["y"][rows], a["temp"][rows]).values
+    comp = compensate(model.model, a["y"][rows], model.model_temperature(frame)[rows]).values
     return ins_errors(a, win, {"raw": a["y"][rows], model.name: comp}, window_s)

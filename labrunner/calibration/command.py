@@ -51,6 +51,10 @@ examples:
                         "trained)")
     p.add_argument("--splits", default=",".join(SPLITS), metavar="NAMES",
                    help=f"evaluation splits, comma-separated (default: all: {', '.join(SPLITS)})")
+    p.add_argument("--thermal-lag", default=None, metavar="S|auto",
+                   help="the sensing element's thermal lag behind its temperature sensor: a time constant in s "
+                        "(e.g. the diagnosis's thermal_lag finding) or 'auto' to search it; the lag-corrected "
+                        "fit is used when it lowers the held-out error (default: the logged temperature)")
     p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
     p.add_argument("--seed", type=count, default=0, metavar="N", help="seed of the random held-out split")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -73,8 +77,14 @@ def _options(args: argparse.Namespace) -> FitOptions:
     variants = tuple(v.strip() for v in args.rbf.split(",") if v.strip())
     export = args.export_rbf or ("hybrid" if "hybrid" in variants else (variants[0] if variants else ""))
     splits = tuple(s.strip() for s in args.splits.split(",") if s.strip())
+    lag: float | str | None = args.thermal_lag
+    if lag is not None and lag != "auto":
+        try:
+            lag = float(lag)
+        except ValueError:
+            raise UserError(f"--thermal-lag must be a time constant in s or 'auto', not {lag!r}") from None
     return FitOptions(poly_order=order, poly_method=args.poly_method, rbf_variants=variants, rbf_export=export,
-                      evaluate=not args.no_eval, splits=splits, seed=args.seed)
+                      evaluate=not args.no_eval, splits=splits, seed=args.seed, thermal_lag_s=lag)
 
 
 def run(args: argparse.Namespace) -> int:

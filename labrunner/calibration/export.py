@@ -9,6 +9,10 @@ inline functions that compensate one sample,
 y and u are [ax ay az (g), gx gy gz (deg/s)]; both return 1 when the sample lies outside
 the data the model was fitted to (extrapolation), else 0. `lr_real` is float unless
 LR_USE_DOUBLE is defined before the include.
+
+A model fitted at the lag-corrected temperature (`thermal_lag_fit.TemperatureFilter`) carries its filter:
+`temperature_filter` in the JSON model, and in the header a first-order filter state with
+`<prefix>temp_filter_init` and `<prefix>temp_filter_update` whose output is the temp_c to pass.
 """
 
 from __future__ import annotations
@@ -20,19 +24,32 @@ from typing import Any
 import numpy as np
 
 from .rbf_model import RbfModel
+from .thermal_lag_fit import TemperatureFilter
 from .thermal_poly import PolyModel, TriadPoly
 
 FORMAT = "labrunner-calibration-model/1"
 
 
-def model_to_json(model: PolyModel | RbfModel, provenance: dict[str, Any] | None = None) -> dict[str, Any]:
+def model_to_json(model: PolyModel | RbfModel, provenance: dict[str, Any] | None = None,
+                  temperature_filter: TemperatureFilter | None = None) -> dict[str, Any]:
     from .fit import json_clean
 
-    return json_clean({"format": FORMAT, "provenance": provenance or {}, "model": model.to_dict()})
+    d = model.to_dict()
+    if temperature_filter is not None:
+        d["temperature_filter"] = temperature_filter.to_dict()
+    return json_clean({"format": FORMAT, "provenance": provenance or {}, "model": d})
 
 
-def save_model(model: PolyModel | RbfModel, path: str | Path, provenance: dict[str, Any] | None = None) -> None:
-    Path(path).write_text(json.dumps(model_to_json(model, provenance), indent=1, allow_nan=False))
+def save_model(model: PolyModel | RbfModel, path: str | Path, provenance: dict[str, Any] | None = None,
+               temperature_filter: TemperatureFilter | None = None) -> None:
+    Path(path).write_text(json.dumps(model_to_json(model, provenance, temperature_filter), indent=1,
+                                     allow_nan=False))
+
+
+def filter_from_dict(d: dict[str, Any]) -> TemperatureFilter | None:
+    """The temperature filter a model dict carries (`temperature_filter`), or None."""
+    f = d.get("temperature_filter")
+    return None if f is None else TemperatureFilter.from_dict(f)
 
 
 def load_model(path: str | Path) -> PolyModel | RbfModel:
@@ -74,9 +91,11 @@ _COMMON = r"""
 #ifdef LR_USE_DOUBLE
 typedef double lr_real;
 #define LR_EXP(x) exp(x)
+#define LR_EXPM1(x) expm1(x)
 #else
 typedef float lr_real;
 #define LR_EXP(x) expf(x)
+#define LR_EXPM1(x) expm1f(x)
 #endif
 
 #ifndef LR_CALIBRATION_COMMON
@@ -230,8 +249,54 @@ def _rbf_section(p: str, model: RbfModel) -> list[str]:
     return out
 
 
+def _filter_section(p: str, f: TemperatureFilter) -> list[str]:
+    # y' = x + alpha (y - x_prev) - beta (x - x_prev): the exact first-order-hold step of
+    # dy/dt = (x - y)/tau (x linear over the sample), as labrunner.imu.recursions.first_order_lag; written
+    # in differences so that single precision keeps the small lag.
+    return [
+        "/* ---- temperature filter: the sensing element lags the temperature sensor ----",
+        f" * The models take the element temperature, the sensor's through dy/dt = (x - y) / tau, tau = {f.tau_s:g} s.",
+        f" * Call {p}temp_filter_init at power-on with the first temperature, then {p}temp_filter_update with every",
+        f" * sample's temperature (every {f.sample_period_s:g} s; {p}temp_filter_update_dt for another interval), and",
+        " * pass what it returns as temp_c to the compensation functions. */",
+        f"#define {p.upper()}TEMP_FILTER 1",
+        f"static const lr_real {p}temp_filter_tau_s = {_num(f.tau_s)};",
+        f"static const lr_real {p}temp_filter_period_s = {_num(f.sample_period_s)};",
+        f"static const lr_real {p}temp_filter_alpha = {_num(f.alpha)};  /* exp(-period / tau) */",
+        f"static const lr_real {p}temp_filter_beta = {_num(f.beta)};  /* (1 - alpha) tau / period */",
+        f"typedef struct {{ lr_real y, x_prev; }} {p}temp_filter;",
+        "",
+        f"static inline void {p}temp_filter_init({p}temp_filter *f, lr_real temp_c)",
+        "{",
+        "    f->y = temp_c;",
+        "    f->x_prev = temp_c;",
+        "}",
+        "",
+        f"static inline lr_real {p}temp_filter_step({p}temp_filter *f, lr_real temp_c, lr_real alpha, lr_real beta)",
+        "{",
+        "    f->y = temp_c + alpha * (f->y - f->x_prev) - beta * (temp_c - f->x_prev);",
+        "    f->x_prev = temp_c;",
+        "    return f->y;",
+        "}",
+        "",
+        f"static inline lr_real {p}temp_filter_update({p}temp_filter *f, lr_real temp_c)",
+        "{",
+        f"    return {p}temp_filter_step(f, temp_c, {p}temp_filter_alpha, {p}temp_filter_beta);",
+        "}",
+        "",
+        f"static inline lr_real {p}temp_filter_update_dt({p}temp_filter *f, lr_real temp_c, lr_real dt_s)",
+        "{",
+        "    lr_real x, em1;",
+        f"    if (dt_s <= 0) return {p}temp_filter_step(f, temp_c, 1, 1);",
+        f"    x = dt_s / {p}temp_filter_tau_s;",
+        "    em1 = -LR_EXPM1(-x);  /* 1 - alpha */",
+        f"    return {p}temp_filter_step(f, temp_c, 1 - em1, em1 / x);",
+        "}",
+    ]
+
+
 def c_header(poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
-             comment: str = "") -> str:
+             comment: str = "", temperature_filter: TemperatureFilter | None = None) -> str:
     """The C header text for the given models (either may be None)."""
     guard = f"{prefix.upper()}CALIBRATION_H"
     lines = [
@@ -244,6 +309,8 @@ def c_header(poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
         body = comment.replace("*/", "* /").splitlines()
         lines += ["/* " + body[0]] + [" * " + b for b in body[1:]] + [" */"]
     lines += [f"#ifndef {guard}", f"#define {guard}", _COMMON]
+    if temperature_filter is not None:
+        lines += _filter_section(prefix, temperature_filter) + [""]
     if poly is not None:
         lines += _poly_section(prefix, poly) + [""]
     if rbf is not None:
@@ -253,5 +320,5 @@ def c_header(poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
 
 
 def write_c_header(path: str | Path, poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
-                   comment: str = "") -> None:
-    Path(path).write_text(c_header(poly, rbf, prefix, comment))
+                   comment: str = "", temperature_filter: TemperatureFilter | None = None) -> None:
+    Path(path).write_text(c_header(poly, rbf, prefix, comment, temperature_filter))

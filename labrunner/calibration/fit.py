@@ -19,6 +19,7 @@ from .gain import GainCheck, check_models
 from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_model
 from .records import RecordOptions, Records, TemperatureSteps, frame_arrays, segment_records, temperature_steps
 from .six_position import StepCalibration, calibrate_steps
+from .thermal_lag_fit import LagReport, TemperatureFilter, fit_with_lag
 from .thermal_poly import PolyModel, TriadPoly, cv_order, fit_joint, fit_two_stage, max_order
 from .triads import ORIENTATIONS, TRIADS
 
@@ -42,8 +43,18 @@ class FitOptions:
     holdout_fraction: float = 0.2
     eval_max_rows: int = 1_000_000  # held-out rows scored per split (a random subset beyond this)
     seed: int = 0
+    # Thermal lag of the sensing element (s), or "auto" (searched), or None: the models see the logged
+    # temperature. With a lag, the lag-corrected fit is used when it gains (thermal_lag_fit.py).
+    thermal_lag_s: float | str | None = None
 
     def __post_init__(self) -> None:
+        if self.thermal_lag_s is not None and self.thermal_lag_s != "auto":
+            from .thermal_lag_fit import MAX_TAU_S
+
+            if isinstance(self.thermal_lag_s, bool) or not isinstance(self.thermal_lag_s, int | float) \
+                    or not 0 < self.thermal_lag_s <= MAX_TAU_S:
+                raise UserError(f"thermal lag must be 'auto' or a time constant in (0, {MAX_TAU_S:g}] s, "
+                                f"not {self.thermal_lag_s!r}")
         if self.poly_method not in ("joint", "two_stage"):
             raise UserError(f"poly method must be 'joint' or 'two_stage', not {self.poly_method!r}")
         if not (self.poly_order == "cv" or (isinstance(self.poly_order, int) and self.poly_order >= 0)):
@@ -149,6 +160,13 @@ class FitResult:
     # The measured gain of every model (evaluation name -> check): a model whose gain departs from the
     # fitted scale by more than gain.LIMIT is not exported.
     gains: dict[str, GainCheck] = field(default_factory=dict)
+    # With FitOptions.thermal_lag_s: tau, its held-out gain over the plain fit and whether it is used.
+    thermal_lag: LagReport | None = None
+
+    @property
+    def temperature_filter(self) -> TemperatureFilter | None:
+        """The filter the exported models' temperature goes through (None: the logged temperature)."""
+        return self.thermal_lag.temperature_filter if self.thermal_lag else None
 
     @property
     def polynomial(self) -> PolyModel:
@@ -217,6 +235,8 @@ class FitResult:
     @property
     def notes(self) -> list[str]:
         out = list(self.models.notes)
+        if self.thermal_lag is not None:
+            out.append(self.thermal_lag.sentence())
         for p in self.polynomial.triads().values():
             out.extend(p.notes)
         for m in self.models.rbf.values():
@@ -228,6 +248,9 @@ class FitResult:
         out: dict[str, Any] = {"polynomial": self.polynomial.to_dict()}
         if self.rbf is not None:
             out["rbf"] = self.rbf.to_dict()
+        if self.temperature_filter is not None:
+            for d in out.values():
+                d["temperature_filter"] = self.temperature_filter.to_dict()
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -251,6 +274,7 @@ class FitResult:
             "gains": {k: g.to_dict() for k, g in self.gains.items()},
             "not_exported": self.not_exported,
             "timings_s": self.timings_s,
+            "thermal_lag": self.thermal_lag.to_dict() if self.thermal_lag else None,
         })
 
 
@@ -306,8 +330,11 @@ def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provena
     Raises `UserError` when the data holds nothing that can be fitted; otherwise fits
     what it can and lists the rest in `FitResult.not_fitted`.
     """
+    opt = options or FitOptions()
     with analysis_threads():
-        return _fit_campaign(frame, options or FitOptions(), provenance, progress)
+        if opt.thermal_lag_s is not None:
+            return fit_with_lag(frame, opt, provenance, progress, _fit_campaign)
+        return _fit_campaign(frame, opt, provenance, progress)
 
 
 def _fit_campaign(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str, Any] | None,

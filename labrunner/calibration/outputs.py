@@ -50,12 +50,14 @@ def write_fit_files(result: FitResult, out: Path, summary: str | None = None) ->
     `out`; returns the names written and the figures section appended to summary.md."""
     out.mkdir(parents=True, exist_ok=True)
     prov = result.export_provenance()
-    save_model(result.polynomial, out / "polynomial.json", prov)
+    lag = result.temperature_filter  # the models' temperature filter (a thermal lag used), or None
+    save_model(result.polynomial, out / "polynomial.json", prov, lag)
     written = ["polynomial.json"]
     if result.rbf is not None:
-        save_model(result.rbf, out / "rbf.json", prov)
+        save_model(result.rbf, out / "rbf.json", prov, lag)
         written.append("rbf.json")
-    write_c_header(out / "imu_calibration.h", result.polynomial, result.rbf, comment=header_comment(result))
+    write_c_header(out / "imu_calibration.h", result.polynomial, result.rbf, comment=header_comment(result),
+                   temperature_filter=lag)
     figures, section = draw_figures(result, out)
     text = summary if summary is not None else summary_markdown(result)
     (out / "summary.md").write_text(text + "\n\n" + section + "\n")

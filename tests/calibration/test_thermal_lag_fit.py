@@ -1,0 +1,139 @@
+"""Calibrating with the thermal lag (labrunner.calibration.thermal_lag_fit): the lag-corrected temperature,
+the exported filter (model JSON, `labrunner compensate`, the C header compiled with gcc) and the fit's
+choice between the lag-corrected and the plain model."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from labrunner.calibration import compensate
+from labrunner.calibration.apply import compensate_data, read_model
+from labrunner.calibration.export import save_model, write_c_header
+from labrunner.calibration.fit import FitOptions, fit_campaign
+from labrunner.calibration.thermal_lag_fit import TemperatureFilter, lag_corrected_temperature
+from labrunner.errors import UserError
+from labrunner.imu.recursions import first_order_lag
+
+from calib_campaigns import make_campaign
+
+OUT = ["ax_g", "ay_g", "az_g", "gx_dps", "gy_dps", "gz_dps"]
+
+
+@pytest.fixture(scope="module")
+def small_fit():
+    return fit_campaign(make_campaign(seed=5, temperatures_c=(-10.0, 10.0, 30.0, 50.0), average_s=1.0),
+                        FitOptions(evaluate=False, rbf_variants=("hybrid",)))
+
+
+def test_the_lag_corrected_temperature_lags_a_ramp_by_rate_times_tau_and_restarts_per_run():
+    t = np.arange(0.0, 7200.0, 1.0)
+    temp = 10.0 + 0.5 / 60.0 * t  # 0.5 C/min
+    run = np.where(t < 3600.0, 1, 2)
+    shuffled = np.random.default_rng(0).permutation(t.size)  # rows in any order: filtered in time order per run
+    out = np.empty(t.size)
+    out[shuffled] = lag_corrected_temperature(t[shuffled], temp[shuffled], run[shuffled], 240.0)
+    # Settled on the ramp: behind by r * tau = 2 C; each run's filter starts at its first temperature.
+    assert out[3000] == pytest.approx(temp[3000] - 2.0, abs=1e-4)
+    assert out[3600] == pytest.approx(temp[3600], abs=1e-9) and out[0] == temp[0]
+    assert out[7000] == pytest.approx(temp[7000] - 2.0, abs=1e-4)
+
+
+def _ramp_frame(period_s: float, n: int, rng: np.random.Generator) -> pd.DataFrame:
+    t = np.arange(n) * period_s
+    temp = 20.0 + 10.0 * np.sin(t / 900.0) + 0.02 * t / 60.0  # heating and cooling
+    y = np.column_stack([rng.normal(0, 0.01, n), rng.normal(0, 0.01, n), 1 + rng.normal(0, 0.01, n),
+                         rng.normal(0, 0.5, (n, 3))])
+    return pd.DataFrame({"t_s": t, "run": 1, "orientation": "z_up", "imu_temp_c": temp, "table_rate_dps": 0.0,
+                         **{c: y[:, j] for j, c in enumerate(OUT)}})
+
+
+MAIN_C = r"""
+#include <stdio.h>
+#include "cal.h"
+int main(void) {
+    double v[8];
+    int first = 1;
+    lr_temp_filter f;
+    while (scanf("%lf %lf %lf %lf %lf %lf %lf %lf", &v[0], &v[1], &v[2], &v[3], &v[4], &v[5], &v[6], &v[7])
+           == 8) {
+        lr_real y[6], up[6], ur[6], temp;
+        int k, fp, fr;
+        for (k = 0; k < 6; ++k) y[k] = (lr_real)v[k];
+        if (first) { lr_temp_filter_init(&f, (lr_real)v[6]); temp = f.y; first = 0; }
+        else if (v[7] > 0) temp = lr_temp_filter_update_dt(&f, (lr_real)v[6], (lr_real)v[7]);
+        else temp = lr_temp_filter_update(&f, (lr_real)v[6]);
+        fp = lr_poly_compensate(y, temp, up);
+        fr = lr_rbf_compensate(y, temp, ur);
+        printf("%.17g ", (double)temp);
+        for (k = 0; k < 6; ++k) printf("%.17g ", (double)up[k]);
+        for (k = 0; k < 6; ++k) printf("%.17g ", (double)ur[k]);
+        printf("%d %d\n", fp, fr);
+    }
+    return 0;
+}
+"""
+
+
+@pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not available")
+@pytest.mark.parametrize("irregular", [False, True])
+def test_the_c_header_filter_matches_python_compensate_on_a_temperature_ramp(small_fit, tmp_path, irregular):
+    filt = TemperatureFilter(tau_s=240.0, sample_period_s=1.0)
+    frame = _ramp_frame(1.0, 6000, np.random.default_rng(1))
+    dt = np.zeros(len(frame))
+    if irregular:  # rows at irregular times: the firmware calls the update with each interval
+        frame["t_s"] = np.cumsum(np.random.default_rng(2).uniform(0.2, 3.0, len(frame)))
+        dt[1:] = np.diff(frame["t_s"].to_numpy())
+    write_c_header(tmp_path / "cal.h", small_fit.polynomial, small_fit.rbf, temperature_filter=filt)
+    save_model(small_fit.polynomial, tmp_path / "polynomial.json", temperature_filter=filt)
+    save_model(small_fit.rbf, tmp_path / "rbf.json", temperature_filter=filt)
+    (tmp_path / "main.c").write_text(MAIN_C)
+    y = frame[OUT].to_numpy()
+    text = "\n".join(" ".join(repr(float(v)) for v in (*r, tc, d))
+                     for r, tc, d in zip(y, frame.imu_temp_c, dt, strict=True)) + "\n"
+    poly = compensate_data(read_model(tmp_path / "polynomial.json"), frame).frame
+    rbf = compensate_data(read_model(tmp_path / "rbf.json"), frame).frame
+    want_temp = first_order_lag(frame.t_s.to_numpy(), frame.imu_temp_c.to_numpy(), 240.0)
+    assert np.abs(want_temp - frame.imu_temp_c.to_numpy()).max() > 0.5  # the lag matters here
+    # compensate's temperature is the filter's: the same model at the filtered temperature.
+    assert np.allclose(poly[[c + "_comp" for c in OUT]].to_numpy(),
+                       compensate(small_fit.polynomial, y, want_temp).values, atol=1e-12)
+    for flags, tol_temp, tol_out in (("-DLR_USE_DOUBLE", 1e-9, 1e-9), ("", 2e-4, 2e-5)):
+        exe = tmp_path / f"cal{flags or '_float'}"
+        subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", *([flags] if flags else []),
+                        "-o", str(exe), str(tmp_path / "main.c"), "-lm"], check=True)
+        out = subprocess.run([str(exe)], input=text, capture_output=True, text=True, check=True).stdout
+        arr = np.array([[float(x) for x in line.split()] for line in out.strip().splitlines()])
+        assert arr.shape == (len(frame), 15)
+        assert np.abs(arr[:, 0] - want_temp).max() < tol_temp, flags
+        assert np.abs(arr[:, 1:7] - poly[[c + "_comp" for c in OUT]].to_numpy()).max() < tol_out * 10, flags
+        assert np.abs(arr[:, 7:13] - rbf[[c + "_comp" for c in OUT]].to_numpy()).max() < tol_out * 10, flags
+        assert np.array_equal(arr[:, 13].astype(bool), poly.extrapolated.to_numpy().astype(bool)) or flags == ""
+
+
+def test_a_model_file_without_a_filter_compensates_at_the_logged_temperature(small_fit, tmp_path):
+    frame = _ramp_frame(1.0, 500, np.random.default_rng(3))
+    save_model(small_fit.polynomial, tmp_path / "p.json")
+    out = compensate_data(read_model(tmp_path / "p.json"), frame).frame
+    want = compensate(small_fit.polynomial, frame[OUT].to_numpy(), frame.imu_temp_c.to_numpy()).values
+    assert np.allclose(out[[c + "_comp" for c in OUT]].to_numpy(), want, atol=1e-12)
+
+
+def test_a_bad_filter_in_a_model_file_is_one_located_line(small_fit, tmp_path):
+    save_model(small_fit.polynomial, tmp_path / "p.json", temperature_filter=TemperatureFilter(240.0, 1.0))
+    d = json.loads((tmp_path / "p.json").read_text())
+    d["model"]["temperature_filter"]["tau_s"] = -3
+    (tmp_path / "p.json").write_text(json.dumps(d))
+    with pytest.raises(UserError, match="p.json: the model is incomplete or malformed.*tau_s"):
+        read_model(tmp_path / "p.json")
+
+
+@pytest.mark.parametrize("bad", [0.0, -5.0, float("nan"), "soon", True])
+def test_the_fit_option_is_validated(bad):
+    with pytest.raises(UserError, match="thermal lag must be"):
+        FitOptions(thermal_lag_s=bad)
