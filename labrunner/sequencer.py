@@ -155,7 +155,9 @@ class CampaignRunner:
         self.interlocks = Interlocks.from_safety(self.p.safety)
         self.policy = FaultPolicy(self.p.faults)
         self.auto_resume = AutoResume(auto_resume_s, max_auto_resumes)
-        self.monitor = ImuMonitor(lab.imu, lab.chamber, lambda: self.t, self.p.monitor.average_s)
+        self._chamber_reading: tuple[float, float] | None = None  # (clock time, °C) of the last chamber read
+        self.monitor = ImuMonitor(lab.imu, lab.chamber, lambda: self.t, self.p.monitor.average_s,
+                                  read_chamber=self._read_chamber)
         self.fault_log = FaultLog(self.stats, self.event, self.event_from_thread)
         self.fault_log.attach(lab.chamber, lab.table, lab.imu)
         self.fault_injector: Any = None  # set by labrunner.fault_plan in dry runs with injected faults
@@ -205,6 +207,22 @@ class CampaignRunner:
             self.chamber_c = chamber_c
         if imu_c is not None and np.isfinite(imu_c):
             self.imu_temp_c = imu_c
+
+    def _read_chamber(self) -> float:
+        """The chamber's temperature, read once per moment of clock time.
+
+        A poll and the monitor stretch it opens (or closes) want the reading of one moment: a second
+        Modbus request while the clock stands still could only return the same value (a simulated lab
+        changes only when its virtual clock advances; on a real clock the time never repeats, so every
+        call reads). Halves the chamber requests of a dry run's ramps and soaks."""
+        now = self.clock.now()
+        cached = self._chamber_reading
+        if cached is not None and cached[0] == now:
+            return cached[1]
+        pv = self.lab.chamber.read_temperature()
+        # A read that let the clock move (a retry's backoff) is not a reading of one moment.
+        self._chamber_reading = (now, pv) if self.clock.now() == now else None
+        return pv
 
     # --- time, events, requests ------------------------------------------------------------
 
@@ -559,7 +577,7 @@ class CampaignRunner:
         deadline = started + s.max_wait_s
         fallback_told = False
         while True:
-            pv = self.lab.chamber.read_temperature()
+            pv = self._read_chamber()
             sample = self.lab.imu.latest()
             imu_t = sample.temp_c if sample is not None else float("nan")
             self._interlocks(chamber_c=pv, imu_temp=imu_t)
@@ -590,7 +608,7 @@ class CampaignRunner:
         """Poll the chamber until it is within tolerance of target; False on timeout."""
         t_end = self.t + max_wait
         while True:
-            pv = self.lab.chamber.read_temperature()
+            pv = self._read_chamber()
             self._interlocks(chamber_c=pv)
             self._saw(pv)
             self._report()  # the chamber on its way, poll by poll

@@ -56,23 +56,26 @@ class MonitorWindow:
 class ImuMonitor:
     """Opens and closes monitor stretches on an IMU and a chamber; `now()` is campaign time."""
 
-    def __init__(self, imu: Imu, chamber: Chamber, now: Callable[[], float], average_s: float) -> None:
+    def __init__(self, imu: Imu, chamber: Chamber, now: Callable[[], float], average_s: float,
+                 read_chamber: Callable[[], float] | None = None) -> None:
         self.imu = imu
         self.chamber = chamber
         self.now = now
         self.average_s = average_s
+        # How the chamber is read (the sequencer's, which does not ask again for a reading of this moment).
+        self.read_chamber = read_chamber if read_chamber is not None else chamber.read_temperature
 
     def begin(self) -> MonitorWindow:
         start = self.imu.begin_record()
         t0 = self.now()
-        return MonitorWindow(start=start, t0_s=t0, chamber=[(t0, self.chamber.read_temperature())])
+        return MonitorWindow(start=start, t0_s=t0, chamber=[(t0, self.read_chamber())])
 
     def end(self, window: MonitorWindow, seconds: float, *, timeout_s: float, run: int,
             orientation: str) -> SampleBlock | None:
         """Collect the stretch's frames (`seconds` long) and average them."""
         n = int(round(seconds * self.imu.rate_hz))
         rec = self.imu.end_record(window.start, n, timeout_s=timeout_s)
-        window.chamber.append((self.now(), self.chamber.read_temperature()))
+        window.chamber.append((self.now(), self.read_chamber()))
         block = average_block(rec, start=window.start, t0_s=window.t0_s, rate_hz=self.imu.rate_hz,
                               average_s=self.average_s, run=run, orientation=orientation,
                               chamber=np.array(window.chamber))
