@@ -1,35 +1,50 @@
-"""The full paper campaign as a dry run in virtual time, and the logging path against raw SQLite.
+"""The paper campaign as a dry run in virtual time (issue 15, target 1), and the logging path against raw SQLite.
 
-Usage: python bench/bench_campaign.py [--procedure procedures/paper_campaign.yaml] [--db PATH] [--keep]
+Usage: python bench/bench_campaign.py [--procedure procedures/paper_campaign.yaml] [--no-fit] [--hog]
+                                      [--skip-run] [--keep] [--workdir DIR]
 
-Prints the wall time of the whole dry run (sequencer + drivers + simulated lab over
-sockets + store), samples per second, and the logging path's rate compared with raw
-`sqlite3.executemany` of the same rows (one row per sample, tuples) measured in the
-same run on the same machine. Targets (issue 3): the four-day campaign (~12 M
-samples) in under 3 minutes, logging at no less than half the raw SQLite rate.
+Runs `labrunner run PROCEDURE --sim --db DB --quiet` as a child process and prints its wall time, CPU
+time and peak RSS (the kernel's count for that child), the recording's own wall time (the campaign
+summary's, before the end-of-run fit) and the lab time, against the targets of issue 15: the dry run,
+end-of-run fit included, in at most 45 s wall on a quiet machine (load <= 2) and at most 1.5x that with a
+second process hogging a core (`--hog`: the run is repeated beside bench.common.cpu_hog), peak RSS at most
+500 MB. `--no-fit` times the recording alone (a copy of the procedure with `fit: {run: false}`).
+
+Then the logging path's rate (`Store.commit_record` of real record blocks) against raw
+`sqlite3.executemany` of the same rows, measured in the same run (issue 3: at least half the raw rate).
+
+Everything is written in a temporary directory, deleted at the end unless --keep (or --workdir, which
+is kept). Exit 0 when the bench ran (targets missed are printed as MISSED); 1 when the dry run failed.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
+import re
 import shutil
 import sqlite3
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.common import CommandRun, cpu_hog, load_line, report, run_measured  # noqa: E402
+
+WALL_LIMIT_S = 45.0  # the dry run, end-of-run fit included, load <= 2
+HOG_FACTOR = 1.5  # with a CPU hog: no worse than this times the limit
+RSS_LIMIT_MB = 500.0
+LOGGING_RATIO_MIN = 0.5
+_SUMMARY = re.compile(r"lab time ([\d.]+) h, wall ([\d.]+) s")
 
 
 def raw_sqlite_rate(frame_rows: list[tuple], path: Path) -> float:
     """Rows per second for plain executemany of tuples into a fresh WAL database."""
-    if path.exists():
-        path.unlink()
     conn = sqlite3.connect(path)
     conn.execute("PRAGMA journal_mode=WAL")
     conn.execute("PRAGMA synchronous=NORMAL")
@@ -74,54 +89,85 @@ def logging_path_rate(store_path: Path, n_steps: int) -> tuple[float, int]:
     return n_steps * 3000 / dt, n_steps * 3000
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--procedure", default=str(ROOT / "procedures" / "paper_campaign.yaml"))
-    ap.add_argument("--db", default=None)
-    ap.add_argument("--keep", action="store_true", help="keep the database (e.g. for bench_fit.py --data)")
+def procedure_copy(procedure: Path, workdir: Path, fit: bool) -> Path:
+    """The procedure as given, or a copy with the end-of-run fit switched off (the recording alone)."""
+    if fit:
+        return procedure
+    data = yaml.safe_load(procedure.read_text())
+    data["fit"] = {**(data.get("fit") or {}), "run": False}
+    out = workdir / f"{procedure.stem}_nofit.yaml"
+    out.write_text(yaml.safe_dump(data, sort_keys=False))
+    return out
+
+
+def dry_run(procedure: Path, db: Path, label: str) -> CommandRun:
+    """One dry run in a child process; its cost, with the recording's wall time from the campaign summary."""
+    for stale in db.parent.glob(db.name + "*"):
+        stale.unlink()
+    load = load_line()
+    run = run_measured([sys.executable, "-m", "labrunner.cli", "run", str(procedure), "--sim", "--db", str(db),
+                        "--quiet"], cwd=ROOT)
+    m = run.measured
+    if m.returncode != 0:
+        print(run.stderr[-3000:])
+        raise SystemExit(f"dry run ({label}) failed with exit code {m.returncode}")
+    found = _SUMMARY.search(run.stderr)
+    rec = f"; recording {found.group(2)} s wall for {found.group(1)} h of lab time" if found else ""
+    print(f"dry run ({label}), {load} at the start: {m.line()}{rec}")
+    return run
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--procedure", type=Path, default=ROOT / "procedures" / "paper_campaign.yaml")
+    ap.add_argument("--no-fit", action="store_true", help="the recording alone (fit: {run: false} in a copy)")
+    ap.add_argument("--hog", action="store_true", help="run again beside a process hogging one core")
     ap.add_argument("--skip-run", action="store_true", help="only the logging comparison")
+    ap.add_argument("--keep", action="store_true", help="keep the temporary directory (database, fit)")
+    ap.add_argument("--workdir", type=Path, default=None, help="work here instead (kept)")
     args = ap.parse_args()
-    tmp = Path(tempfile.mkdtemp(prefix="labrunner-bench-"))
-    db = Path(args.db) if args.db else tmp / "campaign.db"
 
-    if not args.skip_run:
-        if db.exists():
-            db.unlink()
-        t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "labrunner.cli", "run", args.procedure, "--sim", "--db", str(db),
-                               "--quiet"], capture_output=True, text=True)
-        wall = time.perf_counter() - t0
-        if proc.returncode != 0:
-            print(proc.stderr[-3000:])
-            raise SystemExit(f"dry run failed with exit code {proc.returncode}")
-        from labrunner.store import Store
+    if args.workdir is not None:
+        args.workdir.mkdir(parents=True, exist_ok=True)
+        work = args.workdir
+    else:
+        work = Path(tempfile.mkdtemp(prefix="labrunner-bench-"))
+    try:
+        if not args.skip_run:
+            procedure = procedure_copy(args.procedure.resolve(), work, fit=not args.no_fit)
+            what = "recording alone" if args.no_fit else "end-of-run fit included"
+            quiet = dry_run(procedure, work / "campaign.db", f"{args.procedure.name}, {what}")
+            from labrunner.store import Store
 
-        with Store.open_existing(db) as store:
-            cid = store.resolve(None)
-            steps = store.steps_frame(cid)
-            samples = int(steps.n_samples.sum())
-            lab_h = (store.campaign(cid).clock_last - store.campaign(cid).clock_t0) / 3600
-        size_mb = db.stat().st_size / 1e6
-        print(f"dry run of {Path(args.procedure).name}: {len(steps)} steps, {samples:,} samples, "
-              f"{lab_h:.1f} h of lab time ({lab_h / 24:.2f} days)")
-        print(f"  wall time {wall:.1f} s  ->  {samples / wall:,.0f} samples/s end to end, "
-              f"realtime factor {lab_h * 3600 / wall:,.0f}x; database {size_mb:.0f} MB")
-        print(f"  target: under 180 s -> {'OK' if wall < 180 else 'MISSED'}")
+            with Store.open_existing(work / "campaign.db") as store:
+                cid = store.resolve(None)
+                samples = int(store.steps_frame(cid).n_samples.sum())
+            q = quiet.measured
+            print(f"  {samples:,} samples recorded -> {samples / q.wall_s:,.0f} samples/s end to end")
+            report(f"dry run wall ({what})", q.wall_s, WALL_LIMIT_S, "s")
+            report("dry run peak RSS", q.peak_rss_mb, RSS_LIMIT_MB, "MB")
+            if args.hog:
+                with cpu_hog():
+                    busy = dry_run(procedure, work / "campaign_hog.db", f"{args.procedure.name}, {what}, CPU hog")
+                b = busy.measured
+                report("dry run wall beside a CPU hog", b.wall_s, HOG_FACTOR * WALL_LIMIT_S, "s")
+                print(f"  busy/quiet wall ratio {b.wall_s / q.wall_s:.2f} (CPU {b.cpu_s:.1f} s vs {q.cpu_s:.1f} s)")
 
-    n_steps = 400  # 1.2 M samples: enough for stable rates
-    log_rate, n = logging_path_rate(tmp / "log.db", n_steps)
-    rng = np.random.default_rng(1)
-    rows = [(i // 3000, i * 0.02, *map(float, rng.normal(size=7)), i) for i in range(n)]
-    raw_rate = raw_sqlite_rate(rows, tmp / "raw.db")
-    print(f"logging path (Store.commit_record, blobs per record step): {log_rate:,.0f} samples/s")
-    print(f"raw sqlite3.executemany of the same rows (tuples, committed per step): {raw_rate:,.0f} rows/s")
-    print(f"  ratio logging/raw = {log_rate / raw_rate:.2f} (target >= 0.5)")
-    if not args.keep and not args.db:
-        shutil.rmtree(tmp)  # the database, its WAL files and the <db>_fit/ folder of the end-of-run fit
-    elif args.keep:
-        print(f"  database kept: {db}")
+        n_steps = 400  # 1.2 M samples: enough for stable rates
+        log_rate, n = logging_path_rate(work / "log.db", n_steps)
+        rng = np.random.default_rng(1)
+        rows = [(i // 3000, i * 0.02, *map(float, rng.normal(size=7)), i) for i in range(n)]
+        raw_rate = raw_sqlite_rate(rows, work / "raw.db")
+        print(f"logging path (Store.commit_record, blobs per record step): {log_rate:,.0f} samples/s; "
+              f"raw sqlite3.executemany of the same rows (tuples, committed per step): {raw_rate:,.0f} rows/s")
+        report("logging path / raw executemany", log_rate / raw_rate, LOGGING_RATIO_MIN, "x", lower_is_better=False)
+    finally:
+        if args.workdir is None and not args.keep:
+            shutil.rmtree(work)  # the databases, their WAL files and the <db>_fit/ folders of the end-of-run fit
+        else:
+            print(f"  kept: {work}")
+    return 0
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("PYTHONHASHSEED", "0")
-    main()
+    sys.exit(main())
