@@ -133,19 +133,36 @@ class SimWorld:
         """Integrate chamber air and IMU case temperature up to time t (1 s grid)."""
         with self.lock:
             step = self.chamber.p.step_s
+            n, tt = 0, self.chamber.t
+            while tt + step <= t + 1e-9:  # the grid times as the plant accumulates them
+                tt += step
+                n += 1
+            if not n:
+                return
             a = math.exp(-step / self.thermal.case_tau_s)
-            while self.chamber.t + step <= t + 1e-9:
-                self.chamber._step(step)
-                self.case_c = a * self.case_c + (1 - a) * self.chamber.air_c
-                if self._n == len(self._hist):
-                    keep = int(HISTORY_S / step)
-                    if self._n > 2 * keep:
-                        self._hist[:keep] = self._hist[self._n - keep:self._n]
-                        self._n = keep
-                    else:
-                        self._hist = np.concatenate([self._hist, np.empty_like(self._hist)])
-                self._hist[self._n] = (self.chamber.t, self.case_c, self.chamber.air_c)
-                self._n += 1
+            b = 1 - a
+            case = self.case_c
+            rows = []
+            for t_k, air in self.chamber.run_steps(n, step):
+                case = a * case + b * air
+                rows.append((t_k, case, air))
+            self.case_c = case
+            self._append_history(np.array(rows))
+
+    def _append_history(self, rows: np.ndarray) -> None:
+        """Append rows (t, case, air) to the history, keeping at least HISTORY_S of it."""
+        need = self._n + len(rows)
+        if need > len(self._hist):
+            keep = int(HISTORY_S / self.chamber.p.step_s)
+            if self._n > 2 * keep and keep + len(rows) <= len(self._hist):
+                self._hist[:keep] = self._hist[self._n - keep:self._n]
+                self._n = keep
+            else:
+                grown = np.empty((max(2 * len(self._hist), need), 3))
+                grown[:self._n] = self._hist[:self._n]
+                self._hist = grown
+        self._hist[self._n:self._n + len(rows)] = rows
+        self._n += len(rows)
 
     def _history(self, times: np.ndarray, column: int) -> np.ndarray:
         """Interpolate a history column at times (only the stretch of history they span)."""
