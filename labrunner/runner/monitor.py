@@ -29,12 +29,22 @@ def average_block(rec: ImuRecord, *, start: int, t0_s: float, rate_hz: float, av
         return None
     per_bin = max(1, int(round(average_s * rate_hz)))
     offs = rec.counter - (start + 1)
-    uniq, inv, counts = np.unique(offs // per_bin, return_inverse=True, return_counts=True)
+    bins = offs // per_bin
+    if bins.size > 1 and np.all(bins[1:] >= bins[:-1]):  # a record's counters ascend: bins without a sort
+        first = np.concatenate(([0], np.flatnonzero(bins[1:] != bins[:-1]) + 1))
+        counts = np.diff(np.append(first, bins.size))
+        inv = np.repeat(np.arange(first.size), counts)
+    else:
+        _, inv, counts = np.unique(bins, return_inverse=True, return_counts=True)
+    n_bins = counts.size
 
     def means(a: np.ndarray) -> np.ndarray:
-        out = np.zeros((uniq.size,) + a.shape[1:])
-        np.add.at(out, inv, a)
-        return out / counts.reshape((-1,) + (1,) * (a.ndim - 1))
+        # Sums per bin in the frames' order (bincount adds in input order, as np.add.at did).
+        flat = a.reshape(a.shape[0], -1)
+        out = np.empty((n_bins, flat.shape[1]))
+        for j in range(flat.shape[1]):
+            out[:, j] = np.bincount(inv, weights=flat[:, j], minlength=n_bins)
+        return (out / counts[:, None]).reshape((n_bins,) + a.shape[1:])
 
     t_rows = means((t0_s + (offs + 1) / rate_hz).astype(float))
     return SampleBlock(kind="monitor", step_idx=None, run=run, orientation=orientation, t0_s=float(t_rows[0]),
