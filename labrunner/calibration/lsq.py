@@ -37,7 +37,8 @@ def identifiable_columns(x: np.ndarray, w: np.ndarray, rel_tol: float = 1e-9) ->
     if not ok.any():
         return ok
     xs = xw[:, ok] / norms[ok]
-    _, s, vt = np.linalg.svd(xs, full_matrices=True)
+    # U is not needed: full_matrices only when the null space has more rows than vt would keep (n < p).
+    _, s, vt = np.linalg.svd(xs, full_matrices=xs.shape[0] < xs.shape[1])
     rank = int(np.sum(s > rel_tol * max(s[0], 1e-300))) if s.size else 0
     null = vt[rank:]
     free = np.zeros(int(ok.sum()), dtype=bool)
