@@ -4,7 +4,7 @@ Each situation is hidden in generated data the analysis receives only as rows: a
 temperature with real heating/cooling overlap (hysteresis found, or ruled out when absent), a
 continuous log with run labels but no power-ons, a per-run offset large enough to matter. On every
 one the extended model predicts held-out rows (short and hour-long stretches) no worse than an
-ordinary least-squares fit of the same baseline.
+ordinary least-squares fit of the same baseline. The noise as a finding: test_noise_finding.py.
 """
 
 from __future__ import annotations
@@ -109,35 +109,6 @@ def test_each_finding_says_how_stable_it_is_and_a_marginal_verdict_says_so():
     top = next(f for f in marginal.findings if f.cause == "hysteresis")
     assert top.stability is not None and top.stability.uncertain
     assert marginal.verdict_uncertain and "hysteresis is selected on only" in marginal.verdict_note
-
-
-def test_the_noise_is_a_finding_with_its_parameters_and_allan_gain(tmp_path):
-    """White noise, bias instability (flicker, shaped in frequency, not the simulator's Markov sum) and
-    rate random walk hidden in a 48 h log: the noise model is fitted to the residual's Allan deviation."""
-    frame, truth = log_like(3, 48, continuous=True)
-    result = diagnose(frame)
-    assert result.verdict == "none"  # the noise never sets the verdict
-    noise = next(f for f in result.findings if f.cause == "noise")
-    assert noise.status == "noise" and set(noise.channels) == set(truth.white)
-    p = noise.parameters
-    for c in truth.white:
-        assert abs(p["white"][c] / truth.white[c] - 1) < 0.25, c
-        assert abs(p["bias_instability"][c] / truth.bias_instability[c] - 1) < 0.25, c
-        # The random walk rests on the top octaves of a 48 h record (a few dozen independent differences):
-        # within 25 % where it dominates six octaves (gyro), within 60 % on the accelerometers, whose
-        # per-orientation fit takes out more of it.
-        limit = 0.25 if c.startswith("gyro") else 0.6
-        assert abs(p["rate_random_walk"][c] / truth.rate_random_walk[c] - 1) < limit, c
-    # Its gain: the simulated Allan deviation's mismatch, white-only before, fitted model after.
-    for c in noise.channels:
-        assert noise.gain.heldout_rms_before[c] > 0.8 > noise.gain.heldout_rms_after[c]
-    # The extended model carries the fitted noise model, and the report draws the two curves.
-    assert result.model.effects["bias_instability"].b["gyro_z"] == pytest.approx(p["bias_instability"]["gyro_z"])
-    from labrunner.discrepancy.report import write_report
-
-    names = {path.name for path in write_report(result, tmp_path)}
-    assert "allan_deviation.png" in names
-    assert "bias instability B" in (tmp_path / "summary.md").read_text()
 
 
 def test_the_hysteresis_claim_names_the_rows_it_is_about():
