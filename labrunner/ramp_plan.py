@@ -8,6 +8,9 @@ table repeats the rate schedule, until the far end of the range. Each step's pla
 the ramp's setpoint when the step starts; its bin (`bin_c` wide, from the start of the range) tags it,
 and the calibration cuts the continuous records into temperature bins of the same width
 (`labrunner.calibration.records`, `ramp_bin_c`).
+
+The bin tag is stored with the step without a column of its own: a step row holds its plan index and
+the campaign row the procedure text, whose plan gives each index its bin (`stored_bins` reads it back).
 """
 
 from __future__ import annotations
@@ -16,6 +19,13 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pandas as pd
+
+if TYPE_CHECKING:
+    from labrunner.store import Store
 
 log = logging.getLogger(__name__)
 
@@ -53,3 +63,30 @@ def ramp_points(start_c: float, stop_c: float, c_per_min: float, bin_c: float,
 def ramp_duration_s(start_c: float, stop_c: float, c_per_min: float) -> float:
     """How long the chamber takes to ramp the range at `c_per_min`."""
     return abs(stop_c - start_c) / c_per_min * 60.0
+
+
+def stored_bins(store: Store, campaign_id: int) -> pd.DataFrame:
+    """The stored steps of a campaign with their temperature-bin tag: `idx`, `orientation`, `temperature_c`,
+    `t_start`, `t_end`, `bin_index` (the plan's, from the stored procedure; -1 for a campaign without a
+    ramp, whose steps are soaks) and `bin_lo_c`, `bin_hi_c` (the bin's setpoint range)."""
+    from labrunner.procedure import parse_procedure
+
+    info = store.campaign(campaign_id)
+    proc = parse_procedure(info.procedure_text, info.procedure_path or f"campaign {campaign_id}")
+    plan = proc.steps()
+    steps = store.steps_frame(campaign_id)[["idx", "orientation", "temperature_c", "t_start", "t_end"]].copy()
+    ramp = proc.model.ramp
+    idx = steps["idx"].to_numpy(dtype=np.int64)
+    if ramp is None:
+        steps["bin_index"] = -1
+        steps["bin_lo_c"] = steps["bin_hi_c"] = np.nan
+        return steps
+    bins = np.array([plan[i].temperature_index for i in idx], dtype=np.int64)
+    starts = np.array([proc.temperatures_for(plan[i].orientation_index)[0] for i in idx], dtype=float)
+    sign = np.array([1.0 if proc.temperatures_for(plan[i].orientation_index)[-1] >= s else -1.0
+                     for i, s in zip(idx, starts, strict=True)])
+    edge = starts + sign * bins * ramp.bin_c
+    steps["bin_index"] = bins
+    steps["bin_lo_c"] = np.minimum(edge, edge + sign * ramp.bin_c)
+    steps["bin_hi_c"] = np.maximum(edge, edge + sign * ramp.bin_c)
+    return steps

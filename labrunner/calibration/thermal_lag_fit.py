@@ -30,7 +30,7 @@ import pandas as pd
 from labrunner.errors import UserError
 from labrunner.imu.recursions import first_order_lag
 
-from .records import Records, frame_arrays, records_from_labels, temperature_steps
+from .records import Records, frame_arrays, temperature_steps
 from .thermal_poly import fit_joint, max_order
 from .triads import TRIADS
 
@@ -42,8 +42,8 @@ log = logging.getLogger(__name__)
 FILTER_KIND = "first_order_lag"
 MAX_TAU_S = 86400.0
 # The search grid: no lag, then 10 s .. 1 h geometrically; the best point is refined in log tau.
-SEARCH_GRID_S: tuple[float, ...] = (0.0, *np.round(np.geomspace(10.0, 3600.0, 18), 1).tolist())
-REFINE_STEPS = 10
+SEARCH_GRID_S: tuple[float, ...] = (0.0, *np.round(np.geomspace(10.0, 3600.0, 12), 1).tolist())
+REFINE_STEPS = 8  # golden-section steps: the bracket shrinks to 0.618^8 ~ 2 % of two grid steps
 # Held-out RMS of the exported model, lag-corrected over plain, must be below this (mean over the
 # triads and splits both ran) for the lag-corrected model to be used.
 USE_IF_RATIO_BELOW = 1.0
@@ -103,7 +103,11 @@ def lag_corrected_temperature(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarr
     if x.size == 0:
         return out
     runs = np.zeros(x.size, dtype=np.int64) if run is None else np.asarray(run)
-    order = np.lexsort((t, runs))
+    dr = np.diff(runs)
+    if np.all(dr >= 0) and np.all((np.diff(t) >= 0) | (dr != 0)):  # in order already (a store's rows are)
+        order = np.arange(x.size)
+    else:
+        order = np.lexsort((t, runs))
     ts, xs, rs = t[order], x[order], runs[order]
     cuts = np.flatnonzero(np.diff(rs)) + 1
     ys = np.empty_like(xs)
@@ -133,12 +137,17 @@ class LagSearch:
         return {"tau_s": self.tau_s, "score": self.score, "best_tau_s": self.best_tau_s}
 
 
-def _residual_ms(a: dict[str, np.ndarray], labels: np.ndarray, interval: np.ndarray, tau_s: float,
-                 opt: FitOptions) -> np.ndarray:
+def _residual_ms(a: dict[str, np.ndarray], records: Records, tau_s: float, opt: FitOptions) -> np.ndarray:
     """(6,) weighted mean square of the joint polynomial's record residuals with the element temperature
-    at lag `tau_s` (the records' rows as given)."""
-    temp = a["temp_plain"] if tau_s <= 0 else lag_corrected_temperature(a["t"], a["temp_plain"], a["run"], tau_s)
-    recs = records_from_labels({**a, "temp": temp}, labels, interval)
+    at lag `tau_s`. The records keep their rows and output means; only their temperatures move."""
+    recs = records
+    if tau_s > 0:
+        temp = lag_corrected_temperature(a["t"], a["temp"], a["run"], tau_s)
+        sel = records.row_record >= 0
+        lab = records.row_record[sel]
+        mean_t = np.bincount(lab, weights=temp[sel], minlength=len(records)) / np.maximum(
+            np.bincount(lab, minlength=len(records)), 1)
+        recs = replace(records, temp_c=mean_t)
     ro = opt.records
     steps = temperature_steps(recs, ro.step_gap_c, ro.max_step_width_c, ro.continuous_gap_c, ro.ramp_bin_c)
     order = max_order(len(steps), int(opt.poly_order) if opt.poly_order != "cv" else 3)
@@ -154,10 +163,9 @@ def search_tau(frame: pd.DataFrame, records: Records, opt: FitOptions,
                progress: Callable[[str], None] | None = None) -> LagSearch:
     """The tau minimising the joint polynomial's record residual (records as segmented without a lag)."""
     a = frame_arrays(frame)
-    a["temp_plain"] = a["temp"]
-    labels, interval = records.row_record, records.row_interval_s
+    records = replace(records, step=records.step.copy())  # temperature_steps sets the step labels in place
     cache: dict[float, float] = {}
-    base = _residual_ms(a, labels, interval, 0.0, opt)
+    base = _residual_ms(a, records, 0.0, opt)
     ok = np.isfinite(base) & (base > 0)
     if not ok.any():
         raise UserError("thermal lag search: the records leave no residual to search on")
@@ -165,7 +173,7 @@ def search_tau(frame: pd.DataFrame, records: Records, opt: FitOptions,
     def score(tau: float) -> float:
         tau = round(float(tau), 2)
         if tau not in cache:
-            ms = base if tau <= 0 else _residual_ms(a, labels, interval, tau, opt)
+            ms = base if tau <= 0 else _residual_ms(a, records, tau, opt)
             cache[tau] = float(np.mean(ms[ok] / base[ok]))
         return cache[tau]
 

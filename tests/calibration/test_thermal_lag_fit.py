@@ -137,3 +137,115 @@ def test_a_bad_filter_in_a_model_file_is_one_located_line(small_fit, tmp_path):
 def test_the_fit_option_is_validated(bad):
     with pytest.raises(UserError, match="thermal lag must be"):
         FitOptions(thermal_lag_s=bad)
+
+
+# --- a hidden lag in generated ramp data -------------------------------------------------------------
+
+ROW_S = 1.0  # rows: means of 50 samples at 50 Hz
+RAMP_C_PER_MIN = 0.33
+RATES = (-50.0, 0.0, 50.0)  # one 10 s record at each, repeated along the ramp
+
+
+def _imu(tau_s: float | None):
+    from labrunner.imu.model import default_imu_model
+
+    model = default_imu_model(seed=4)
+    return model if tau_s is None else model.with_effects(thermal_lag={"tau_s": tau_s})
+
+
+def _rows(model, t, temp, orient_index, rate, run, rng) -> pd.DataFrame:
+    from labrunner.domain import ORIENTATIONS, UP_VECTORS
+    from labrunner.imu.inputs import ImuInputs
+
+    up = UP_VECTORS[orient_index]
+    inputs = ImuInputs(t_s=t, run=np.full(t.size, run), t_on_s=t - t[0] + 3600.0, temp_c=temp,
+                       force_g=np.tile(up, (t.size, 1)), rate_dps=up[None, :] * rate[:, None])
+    err, _ = model.deterministic_error(inputs)
+    truth = np.concatenate([inputs.force_g, inputs.rate_dps], axis=1)
+    y = truth + err + rng.standard_normal(err.shape) * model.noise_sigma(50.0) / np.sqrt(ROW_S * 50.0)
+    return pd.DataFrame({"t_s": t, "run": run, "orientation": ORIENTATIONS[orient_index], "chamber_c": np.nan,
+                         "imu_temp_c": np.round(temp + rng.normal(0, 0.005, t.size), 3), "table_rate_dps": rate,
+                         **{c: y[:, j] for j, c in enumerate(OUT)}})
+
+
+def ramp_log(tau_s: float | None, seed: int = 0, lo_c: float = -10.0, hi_c: float = 30.0) -> pd.DataFrame:
+    """Six orientations, each one power-on: 20 min soaked at the start, then a ramp at 0.33 C/min (heating,
+    then cooling for the next orientation: serpentine) with the rate schedule repeated along it."""
+    rng = np.random.default_rng(seed)
+    model = _imu(tau_s)
+    chunks, t0 = [], 0.0
+    for oi in range(6):
+        start, stop = (lo_c, hi_c) if oi % 2 == 0 else (hi_c, lo_c)
+        dur = 1200.0 + abs(stop - start) / RAMP_C_PER_MIN * 60.0
+        t = t0 + np.arange(0.0, dur, ROW_S)
+        moved = np.clip((t - t0 - 1200.0) * RAMP_C_PER_MIN / 60.0, 0.0, None)
+        temp = start + np.sign(stop - start) * moved
+        rate = np.asarray(RATES)[((t - t0) // 10.0).astype(int) % len(RATES)]
+        chunks.append(_rows(model, t, temp, oi, rate, oi + 1, rng))
+        t0 = t[-1] + 1800.0
+    return pd.concat(chunks, ignore_index=True)
+
+
+def soaked_errors(model_file, tau_s: float, temps=(-5.5, 4.5, 14.5, 24.5)) -> np.ndarray:
+    """(records, 6) mean errors of the model file on held-out soaks between the ramp's bins (settled), in one
+    power-on: each model's mean error over them (the turn-on bias, which no calibration knows) removed."""
+    from labrunner.calibration.records import reference_values
+
+    rng = np.random.default_rng(99)
+    model = _imu(tau_s)
+    out = []
+    for k, temp in enumerate(temps):
+        for oi in range(6):
+            for rate in RATES:
+                t = 1e6 + 1e4 * (k * 18 + oi * 3 + RATES.index(rate)) + np.arange(0.0, 60.0, ROW_S)
+                f = _rows(model, t, np.full(t.size, temp), oi, np.full(t.size, rate), 100, rng)
+                comp = compensate_data(model_file, f).frame[[c + "_comp" for c in OUT]].to_numpy()
+                out.append((comp - reference_values(np.full(t.size, oi), f.table_rate_dps.to_numpy())).mean(axis=0))
+    return np.array(out) - np.mean(out, axis=0)
+
+
+@pytest.fixture(scope="module")
+def hidden_lag_fits(tmp_path_factory):
+    from labrunner.calibration.outputs import write_outputs
+
+    tau = 300.0  # hidden in the data: the analysis gets the rows only
+    frame = ramp_log(tau)
+    opt = dict(rbf_variants=(), rbf_export="", splits=("between_temperatures", "random"))
+    plain = fit_campaign(frame, FitOptions(**opt))
+    auto = fit_campaign(frame, FitOptions(**opt, thermal_lag_s="auto"))
+    out = tmp_path_factory.mktemp("lagfit")
+    write_outputs(plain, out / "plain")
+    write_outputs(auto, out / "auto")
+    return tau, plain, auto, out
+
+
+def test_a_hidden_lag_is_recovered_and_the_lag_corrected_fit_beats_the_plain_one_held_out(hidden_lag_fits):
+    tau, plain, auto, out = hidden_lag_fits
+    rep = auto.thermal_lag
+    assert rep is not None and rep.source == "auto"
+    assert rep.tau_s == pytest.approx(tau, rel=0.25), rep.search
+    assert rep.used and rep.ratio is not None and rep.ratio < 1.0, rep.to_dict()
+    doc = auto.to_dict()
+    assert doc["thermal_lag"]["used"] and doc["models"]["polynomial"]["temperature_filter"]["tau_s"] == rep.tau_s
+    assert "thermal lag tau" in " ".join(doc["notes"])
+    # The exported files carry the filter; held-out soaks (settled: no lag) judge both models.
+    lagged_file = read_model(out / "auto" / "polynomial.json")
+    assert lagged_file.temperature_filter is not None and lagged_file.temperature_filter.tau_s == rep.tau_s
+    assert read_model(out / "plain" / "polynomial.json").temperature_filter is None
+    assert "temp_filter_update" in (out / "auto" / "imu_calibration.h").read_text()
+    e_plain = soaked_errors(read_model(out / "plain" / "polynomial.json"), tau)
+    e_lag = soaked_errors(lagged_file, tau)
+    rms = lambda e: np.sqrt(np.mean(e ** 2, axis=0))  # noqa: E731
+    acc_p, acc_l = np.sqrt(np.mean(rms(e_plain)[:3] ** 2)), np.sqrt(np.mean(rms(e_lag)[:3] ** 2))
+    gyr_p, gyr_l = np.sqrt(np.mean(rms(e_plain)[3:] ** 2)), np.sqrt(np.mean(rms(e_lag)[3:] ** 2))
+    assert acc_l < 0.7 * acc_p and gyr_l < 0.7 * gyr_p, (acc_p, acc_l, gyr_p, gyr_l)
+
+
+def test_without_a_lag_the_search_finds_none_worth_using():
+    frame = ramp_log(None, seed=1, lo_c=0.0, hi_c=30.0)
+    res = fit_campaign(frame, FitOptions(rbf_variants=(), rbf_export="", splits=("between_temperatures",),
+                                         thermal_lag_s="auto"))
+    rep = res.thermal_lag
+    assert rep is not None
+    assert rep.tau_s < 30.0 or not rep.used, rep.to_dict()
+    assert res.temperature_filter is None or rep.tau_s < 30.0

@@ -1,0 +1,95 @@
+"""Ramp campaigns end to end with the thermal lag: the steps' temperature-bin tags read back from the store,
+and a shortened copy of procedures/ramp_campaign.yaml (its fit section: the lag searched) run as a dry run
+on a simulated IMU whose element lags its sensor, fitted at its end and compensated with the files written."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from labrunner.calibration.apply import compensate_data, read_model
+from labrunner.calibration.compensation import compensate
+from labrunner.calibration.thermal_lag_fit import lag_corrected_temperature
+from labrunner.data_source import load_campaign_data
+from labrunner.procedure import parse_procedure
+from labrunner.ramp_plan import stored_bins
+from labrunner.store import Store
+
+from .conftest import ROOT, cli
+from .test_ramp_campaign import RAMP
+
+OUT = ["ax_g", "ay_g", "az_g", "gx_dps", "gy_dps", "gz_dps"]
+
+
+def test_the_bin_tag_of_every_step_round_trips_through_the_store(tmp_path):
+    proc = tmp_path / "ramp.yaml"
+    proc.write_text(RAMP)
+    db = tmp_path / "r.db"
+    cli("run", proc, "--sim", "--seed", 4, "--db", db, "--quiet", check=0)
+    plan = parse_procedure(RAMP, "ramp.yaml").steps()
+    with Store.open_existing(db) as s:
+        bins = stored_bins(s, 1)
+    assert len(bins) == len(plan)
+    assert list(bins.bin_index) == [p.temperature_index for p in plan]
+    # Each step's setpoint lies in its tagged bin, 1 C wide from the start of its orientation's ramp.
+    assert np.all((bins.temperature_c >= bins.bin_lo_c - 1e-9) & (bins.temperature_c <= bins.bin_hi_c + 1e-9))
+    assert np.allclose(bins.bin_hi_c - bins.bin_lo_c, 1.0)
+    up = bins[bins.orientation == "z_up"]
+    down = bins[bins.orientation == "z_down"]
+    assert up.bin_lo_c.iloc[0] == 15.0 and down.bin_hi_c.iloc[0] == 25.0  # serpentine: down starts at 25
+    assert up.bin_index.is_monotonic_increasing and set(up.bin_index) == set(range(10))
+    # The records the fit reads back carry the tag through their step's time span.
+    frame = load_campaign_data(db).frame
+    tag = np.full(len(frame), -1)
+    for b, a, e in zip(bins.bin_index, bins.t_start, bins.t_end, strict=True):
+        tag[(frame.t_s >= a) & (frame.t_s <= e)] = b
+    assert (tag >= 0).all()
+
+
+def test_a_soak_campaign_has_no_bin_tags(tmp_path):
+    text = RAMP.replace("ramp: {c_per_min: 0.5, bin_c: 1.0}\n", "")
+    proc = tmp_path / "soak.yaml"
+    proc.write_text(text)
+    db = tmp_path / "s.db"
+    cli("run", proc, "--sim", "--seed", 4, "--db", db, "--quiet", check=0)
+    with Store.open_existing(db) as s:
+        assert (stored_bins(s, 1).bin_index == -1).all()
+
+
+def _short_ramp_campaign() -> str:
+    """procedures/ramp_campaign.yaml over 10 ... 22 C with three rates: its fit section as shipped."""
+    text = (ROOT / "procedures" / "ramp_campaign.yaml").read_text()
+    assert "thermal_lag_auto: true" in text
+    text = text.replace("start_c: -25", "start_c: 10").replace("stop_c: 55", "stop_c: 22")
+    text = text.replace("triangular: {max_dps: 100, step_dps: 10}", "list_dps: [-50, 0, 50]")
+    text = text.replace("rbf: true", "rbf: false")
+    return text
+
+
+@pytest.mark.slow
+def test_a_shortened_ramp_campaign_dry_run_fits_with_the_lag_and_compensates_as_it_fitted(tmp_path):
+    proc = tmp_path / "ramp.yaml"
+    proc.write_text(_short_ramp_campaign())
+    sim = tmp_path / "sim.json"
+    sim.write_text(json.dumps({"seed": 3, "imu_model": {"effects": {"thermal_lag": {"tau_s": 240.0}}}}))
+    db, fit_dir = tmp_path / "r.db", tmp_path / "fit"
+    cli("run", proc, "--sim", "--sim-config", sim, "--seed", 3, "--db", db, "--fit-out", fit_dir, "--quiet",
+        check=0, timeout=900)
+    with Store.open_existing(db) as s:
+        assert s.campaign(1).status == "done"
+    summary = (fit_dir / "summary.md").read_text()
+    assert "thermal lag tau" in summary
+    model = read_model(fit_dir / "polynomial.json")
+    frame = load_campaign_data(db).frame
+    out = compensate_data(model, frame).frame
+    if model.temperature_filter is not None:  # the lag was used: compensate feeds the model the filtered T
+        assert "temp_filter_update" in (fit_dir / "imu_calibration.h").read_text()
+        temp = lag_corrected_temperature(frame.t_s.to_numpy(), frame.imu_temp_c.to_numpy(), frame.run.to_numpy(),
+                                         model.temperature_filter.tau_s)
+        assert 100.0 < model.temperature_filter.tau_s < 600.0
+    else:
+        temp = frame.imu_temp_c.to_numpy()
+    want = compensate(model.model, frame[OUT].to_numpy(), temp).values
+    assert np.allclose(out[[c + "_comp" for c in OUT]].to_numpy(), want, atol=1e-12)
