@@ -266,7 +266,9 @@ class Result:
     def ratio(self) -> float:
         """value/limit when lower is better, limit/value otherwise: <= 1 meets the target either way."""
         if self.lower_is_better:
-            return self.value / self.limit if self.limit else float("inf")
+            if not self.limit:  # a limit of zero (rows lost): met exactly or not at all
+                return 0.0 if self.value <= 0 else float("inf")
+            return self.value / self.limit
         return self.limit / self.value if self.value else float("inf")
 
     @property
