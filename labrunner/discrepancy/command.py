@@ -12,7 +12,9 @@ from labrunner.errors import UserError
 from labrunner.output_paths import check_output
 from labrunner.store_address import data_arg, is_store
 
-from .diagnose import TooLittleData
+from .diagnose import DiagnoseOptions, TooLittleData, diagnose
+from .measurements import Measurements
+from .summary import read_store_summary
 from .terms import CAUSE_ORDER
 
 
@@ -57,16 +59,25 @@ def handler(args: argparse.Namespace) -> int:
         check_output(args.report, store=store, inputs=[args.data], force=args.force, directory=True,
                      option="--report")
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip()) if args.causes else None
-    data = api.load_data(args.data, campaign=args.campaign, include_monitor=True)  # ramps and soaks too
     try:
-        result = api.diagnose(data, min_evidence=args.min_evidence, causes=causes)
+        if store is not None:
+            # A store is read block by block into 1 s summaries (bounded memory; docs/diagnosis.md).
+            stored = read_store_summary(args.data, args.campaign)
+            provenance = stored.provenance
+            meas = Measurements.from_frame(stored.frame, stored.summary)
+            del stored
+            result = diagnose(meas, DiagnoseOptions(min_evidence=args.min_evidence, causes=causes))
+        else:
+            data = api.load_data(args.data, campaign=args.campaign, include_monitor=True)  # ramps and soaks too
+            provenance = dict(data.provenance)
+            result = api.diagnose(data, min_evidence=args.min_evidence, causes=causes)
     except TooLittleData as exc:  # the analysis sees rows, not files: name the data here
         raise UserError(f"{args.data}: {exc}") from None
 
     result.model.save(model_out)
     result.model_path = str(model_out)
     payload = result.to_json()
-    payload["data"] = {k: v for k, v in data.provenance.items()}
+    payload["data"] = provenance
     try:
         json_out.write_text(json.dumps(payload, indent=2, default=str))
     except OSError as exc:

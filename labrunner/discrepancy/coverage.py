@@ -20,6 +20,7 @@ from labrunner.imu.effect import RAMP_C_PER_MIN
 from labrunner.imu.effects import REGISTRY
 
 from .measurements import Measurements
+from .summary import weighted_percentile
 from .temperature import branch_state, temperature_rate
 
 AXES = ("x", "y", "z")
@@ -83,18 +84,24 @@ def assess(meas: Measurements) -> Coverage:
     temp = meas.temp_c
     dtdt = temperature_rate(meas.t_s, temp, meas.run) * 60.0
     h = branch_state(temp, 1.0, meas.remounts)
-    heating, cooling = temp[h > 0.5], temp[h < -0.5]
-    overlap = _branch_overlap(heating, cooling)
-    inside = int(np.sum((cooling >= heating.min()) & (cooling <= heating.max()))) if heating.size else 0
-    levels = _levels(temp)
+    # Rows that summarise raw samples count as their samples (the figures are the same as from the samples).
+    n = meas.summary.samples if meas.summary is not None else None
+    up, down = h > 0.5, h < -0.5
+    heating, cooling = temp[up], temp[down]
+    n_up = n[up] if n is not None else None
+    n_down = n[down] if n is not None else None
+    overlap = _branch_overlap(heating, cooling, n_up, n_down)
+    inside_rows = (cooling >= heating.min()) & (cooling <= heating.max()) if heating.size else np.zeros(0, bool)
+    inside = int(np.sum(inside_rows if n_down is None else n_down[inside_rows])) if heating.size else 0
+    levels = _levels(temp, n)
     run_change = np.flatnonzero(meas.run[1:] != meas.run[:-1]) + 1
     orient_change = np.flatnonzero(meas.orientation[1:] != meas.orientation[:-1]) + 1
     cov = Coverage(
-        rows=len(meas), runs=int(np.unique(meas.run).size), orientations=names, rotating=rotating,
+        rows=meas.sample_count, runs=int(np.unique(meas.run).size), orientations=names, rotating=rotating,
         max_rate_dps=float(rate.max()), chamber_logged=bool(np.isfinite(meas.chamber_c).any()),
         temperature_range_c=(float(temp.min()), float(temp.max())), temperature_levels=levels,
-        max_temperature_rate_c_per_min=float(np.percentile(np.abs(dtdt), 99.5)), branch_overlap_c=overlap,
-        branch_rows=(int(heating.size), inside),
+        max_temperature_rate_c_per_min=weighted_percentile(np.abs(dtdt), n, 99.5), branch_overlap_c=overlap,
+        branch_rows=(int(heating.size if n_up is None else n_up.sum()), inside),
         orientation_changes_without_power_on=int(np.setdiff1d(orient_change, run_change).size),
         power_ons_within_an_orientation=int(np.setdiff1d(run_change, orient_change).size),
         temperature_quantum_c=meas.temperature_quantum_c, temperature_jitter_c=meas.temperature_jitter_c,
@@ -105,18 +112,26 @@ def assess(meas: Measurements) -> Coverage:
     return cov
 
 
-def _levels(temp: np.ndarray) -> int:
-    """Distinct temperature levels: 2 degC bins holding at least 0.5 % of the rows."""
+def _levels(temp: np.ndarray, samples: np.ndarray | None = None) -> int:
+    """Distinct temperature levels: 2 degC bins holding at least 0.5 % of the rows (of the samples
+    when rows summarise them)."""
     bins = np.floor(temp / 2.0).astype(np.int64)
-    _, counts = np.unique(bins, return_counts=True)
-    return int(np.sum(counts >= max(0.005 * temp.size, 3)))
+    if samples is None:
+        _, counts = np.unique(bins, return_counts=True)
+        total = temp.size
+    else:
+        keys, inverse = np.unique(bins, return_inverse=True)
+        counts = np.bincount(inverse, weights=samples, minlength=keys.size)
+        total = int(samples.sum())
+    return int(np.sum(counts >= max(0.005 * total, 3)))
 
 
-def _branch_overlap(heating: np.ndarray, cooling: np.ndarray) -> float:
+def _branch_overlap(heating: np.ndarray, cooling: np.ndarray, n_heating: np.ndarray | None = None,
+                    n_cooling: np.ndarray | None = None) -> float:
     if heating.size < 10 or cooling.size < 10:
         return 0.0
-    lo = max(np.percentile(heating, 2), np.percentile(cooling, 2))
-    hi = min(np.percentile(heating, 98), np.percentile(cooling, 98))
+    lo = max(weighted_percentile(heating, n_heating, 2), weighted_percentile(cooling, n_cooling, 2))
+    hi = min(weighted_percentile(heating, n_heating, 98), weighted_percentile(cooling, n_cooling, 98))
     return float(max(hi - lo, 0.0))
 
 

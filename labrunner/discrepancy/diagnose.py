@@ -32,10 +32,11 @@ from .engine import Engine
 from .envelope import envelope_columns
 from .extend import ChannelNoise, build_model, check_model, noise_density, row_spacing, white_rms, with_noise
 from .measurements import Measurements
-from .model import BASELINE, DesignBuilder, Selected, Spec, channel_list, design_derivative, replace, without
+from .model import BASELINE, DesignBuilder, Selected, Spec, channel_list, derivative_dot, replace, without
 from .residuals import residual_table
 from .selection import Evaluation, Searcher, SelectionResult
 from .stability import LEVEL, Stability, finding_stability, resamples, stability
+from .summary import sample_rms
 from .terms import TermContext, TermFit, candidate_terms
 
 _MIN_BLOCKS = 40
@@ -245,7 +246,7 @@ class _Diagnoser:
             x = self.builder.baseline(c, None)
             coef = np.linalg.lstsq(x * w, self.engine.y[:, i] * w[:, 0], rcond=None)[0]
             ref = self.meas.force_g if i < 3 else self.meas.rate_dps
-            slope = design_derivative(self.meas.temp_c, ref) @ coef
+            slope = derivative_dot(self.meas.temp_c, ref, coef)
             floors[c] = 0.5 * q * float(np.sqrt(np.mean(slope * slope)))
         return floors
 
@@ -297,7 +298,7 @@ class _Diagnoser:
             verdict=verdict, findings=findings, not_identifiable=not_identifiable, gain=gain, gain_long=gain_long,
             noise=noise,
             coverage=self.coverage, candidates=self._candidates(result), model=model,
-            model_check={"baseline": check_model(baseline_model, self.meas), "extended": check_model(model, self.meas)},
+            model_check={"baseline": self._check_model(baseline_model), "extended": self._check_model(model)},
             residuals=residuals, method=self._method(), seconds=time.perf_counter() - started)
 
     # -- findings ------------------------------------------------------------------------
@@ -423,8 +424,17 @@ class _Diagnoser:
 
     def _noise(self, spec: Spec) -> dict[str, ChannelNoise]:
         """White noise and drift of each channel under the extended model."""
-        density = noise_density(self.meas, self.blocks)
-        spacing = row_spacing(self.meas)
+        summary = self.meas.summary
+        if summary is not None and summary.raw_density is not None:
+            # Summaries of raw samples: the white noise is the samples' (measured before averaging),
+            # its RMS over the samples as if they were the rows.
+            density = summary.raw_density
+            raw = np.where(summary.averaged, summary.raw_spacing_s or self.meas.row_dt_s, row_spacing(self.meas))
+            n = summary.samples.astype(float)
+            spacing = np.array([n.sum() / float(n @ (1.0 / raw))])  # white_rms's mean of 1/(2 dt) over samples
+        else:
+            density = noise_density(self.meas, self.blocks)
+            spacing = row_spacing(self.meas)
         out = {}
         for i, c in enumerate(CHANNELS):
             rho = self.engine.estimate_rho(spec, c)
@@ -435,6 +445,14 @@ class _Diagnoser:
                                   drift_per_sqrt_s=self.engine.drift.drift_per_sqrt_s(rho, s2),
                                   drift_evidence=float(evidence))
         return out
+
+    def _check_model(self, model: ImuModel) -> dict[str, float]:
+        """`extend.check_model`, over the raw samples when the rows summarise them."""
+        if self.meas.summary is None:
+            return check_model(model, self.meas)
+        predicted, _ = model.deterministic_error(self.meas.imu_inputs())
+        rms = sample_rms(self.meas.summary, self.meas.error - predicted)
+        return {c: float(rms[i]) for i, c in enumerate(CHANNELS)}
 
     def _aliased(self, result: SelectionResult) -> list[str]:
         """Causes the numerical check found indistinguishable from the baseline on some channels."""

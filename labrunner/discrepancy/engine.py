@@ -20,6 +20,7 @@ from .blocks import Blocks
 from .crossval import CvResult, cross_validate, extend_gram, full_fit, solve
 from .drift import DriftFilter, FoldFilters, Whitened
 from .model import BASELINE, DesignBuilder, Spec
+from .summary import channel_sample_rms
 
 # Drift-strength grid points tried first when profiling the likelihood (then the best's neighbours).
 _COARSE = (0, 1, 4, 7, 10, 13, 16, 19, 22, 25)
@@ -273,8 +274,9 @@ class Engine:
             betas[k, keep] = solve(a.T @ a, a.T @ yw[train])
         pred = self.builder.predict_rows(spec, channel, betas, design.slices)  # (N, K)
         fold = self.folds[self._row_block]
-        r = self.builder.ctx.meas.error[:, c] - pred[np.arange(pred.shape[0]), fold]
-        return float(np.sqrt(np.mean(r * r)))
+        meas = self.builder.ctx.meas
+        r = meas.error[:, c] - pred[np.arange(pred.shape[0]), fold]
+        return channel_sample_rms(meas.summary, r, c)  # over the raw samples when rows summarise them
 
 
 @dataclass

@@ -22,7 +22,7 @@ from labrunner.domain import CHANNELS
 from labrunner.imu.effects import candidate_causes
 
 from .crossval import solve
-from .model import DesignBuilder, design_derivative
+from .model import DesignBuilder, derivative_dot
 
 
 def envelope_columns(builder: DesignBuilder, error_blocks: np.ndarray) -> dict[str, np.ndarray]:
@@ -44,8 +44,8 @@ def envelope_columns(builder: DesignBuilder, error_blocks: np.ndarray) -> dict[s
         ref = meas.force_g if i < 3 else meas.rate_dps
         base = builder.baseline(c, None)
         coef = solve(((base * w[:, None]).T @ (base * w[:, None])), (base * w[:, None]).T @ (error_blocks[:, i] * w))
-        slope = design_derivative(meas.temp_c, ref) @ coef  # fitted d(error)/dT per row
-        curve = design_derivative(meas.temp_c, ref, order=2) @ coef
+        slope = derivative_dot(meas.temp_c, ref, coef)  # fitted d(error)/dT per row
+        curve = derivative_dot(meas.temp_c, ref, coef, order=2)
         cols = []
         for cls, env in rough:
             if c not in env:

@@ -16,6 +16,7 @@ from labrunner.campaign_csv import OUTPUT_COLUMNS, read_campaign
 from labrunner.domain import CHANNELS, UP_VECTORS, orientation_index
 from labrunner.imu.model import ImuInputs
 
+from .summary import RowSummary
 from .temperature import (
     dequantize,
     is_jittery,
@@ -59,6 +60,9 @@ class Measurements:
     continuous_run_changes: int = 0  # changes of `run` not taken as power-ons (no gap, or no power_on mark)
     temperature_jitter_c: float = 0.0  # row-to-row jitter of a jittering temperature sensor (0: not jittery)
     temperature_smoothing_s: float = 0.0  # the centred moving mean it was smoothed with (0: not smoothed)
+    # Rows that are means of raw samples (a store read in 1 s summaries): their sample counts,
+    # within-row spread and the raw samples' noise (None: every row is one sample or a logged mean).
+    summary: RowSummary | None = None
     _error: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -69,6 +73,16 @@ class Measurements:
 
     def __len__(self) -> int:
         return int(self.t_s.size)
+
+    @property
+    def samples(self) -> np.ndarray:
+        """(N,) raw samples each row stands for (ones unless rows are summaries)."""
+        return self.summary.samples if self.summary is not None else np.ones(self.t_s.size, dtype=np.int64)
+
+    @property
+    def sample_count(self) -> int:
+        """Raw samples the rows stand for (the rows, unless they are summaries)."""
+        return self.summary.total_samples if self.summary is not None else len(self)
 
     @property
     def reference(self) -> np.ndarray:
@@ -97,13 +111,18 @@ class Measurements:
                          force_g=self.force_g, rate_dps=self.rate_dps)
 
     @classmethod
-    def from_frame(cls, frame: pd.DataFrame) -> Measurements:
-        """From a frame in campaign-CSV columns (validated by `read_campaign`)."""
+    def from_frame(cls, frame: pd.DataFrame, summary: RowSummary | None = None) -> Measurements:
+        """From a frame in campaign-CSV columns (validated by `read_campaign`); `summary`, aligned with
+        the frame's rows, when rows are means of raw samples (`summary.read_store_summary`)."""
         frame = read_campaign(frame)
+        if summary is not None and summary.samples.size != len(frame):
+            raise ValueError(f"summary of {summary.samples.size} rows for a frame of {len(frame)}")
         run = frame["run"].to_numpy(dtype=np.int64)
         t = frame["t_s"].to_numpy(dtype=float)
         order = _time_order(t, run)
         frame = frame.iloc[order].reset_index(drop=True)
+        if summary is not None:
+            summary = summary.take(order)
         run = run[order]
         t = t[order]
         orient = orientation_index(frame["orientation"].astype(str).to_numpy())
@@ -133,7 +152,7 @@ class Measurements:
         elif quantum is not None:
             logged, temp = temp, dequantize(t, temp, run, quantum, _step_time(t, temp, run, quantum))
         output = frame.loc[:, list(OUTPUT_COLUMNS)].to_numpy(dtype=float)
-        weight, spacing, typical = _row_weights(t, run, output, table)
+        weight, spacing, typical = _row_weights(t, run, output, table, summary)
         return cls(
             t_s=t, run=run, orientation=orient, temp_c=temp,
             chamber_c=frame["chamber_c"].to_numpy(dtype=float), table_rate_dps=table,
@@ -142,6 +161,7 @@ class Measurements:
             row_weight=weight, row_spacing_s=spacing, power_on_source=source, run_label=label,
             continuous_run_changes=continuous if label_changes else 0,
             temperature_jitter_c=jitter if smoothing_s else 0.0, temperature_smoothing_s=smoothing_s,
+            summary=summary if summary is not None and summary.averaged.any() else None,
         )
 
 
@@ -183,8 +203,8 @@ def _row_spacing(t: np.ndarray, run: np.ndarray) -> float:
     return float(np.median(d)) if d.size else 1.0
 
 
-def _row_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray,
-                 table: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def _row_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray, table: np.ndarray,
+                 summary: RowSummary | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """Per row: weight (information relative to the most common kind of row) and spacing;
     and the most common kind's spacing.
 
@@ -192,7 +212,12 @@ def _row_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray,
     is measured on the data, from successive differences within the class (robustly: the
     slow thermal signal and the odd rate step do not count), so a 1 Hz log of averages and a
     1 Hz log of single samples get the weights they deserve.
+
+    Rows that are summaries of raw samples (`summary.averaged`) are a kind of their own: a mean of
+    n raw samples weighs n raw samples, whose noise the summary measured before averaging.
     """
+    if summary is not None and summary.averaged.any() and summary.raw_variance is not None:
+        return _summary_weights(t, run, output, table, summary)
     n = t.size
     same = (run[1:] == run[:-1]) & (np.diff(t) > 0)
     d = np.diff(t)
@@ -225,6 +250,45 @@ def _row_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray,
     for c in classes:
         nearest = int(known[np.argmin(np.abs(known - c))])
         weight[cls == c] = float(np.median(variance[ref] / variance[nearest]))
+    return weight, spacing, typical
+
+
+def _summary_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray, table: np.ndarray,
+                     summary: RowSummary) -> tuple[np.ndarray, np.ndarray, float]:
+    """`_row_weights` for a log of summaries: the averaged rows weigh their samples (in units of the
+    most common kind of row, as when the samples themselves were rows), the other rows by their
+    noise against it; the typical spacing is the rows' own."""
+    assert summary.raw_variance is not None
+    n = t.size
+    _, spacing, typical = _row_weights(t, run, output, table)  # spacings only: weights below
+    averaged = summary.averaged
+    same = (run[1:] == run[:-1]) & (np.diff(t) > 0)
+    cls = np.round(2.0 * np.log2(np.maximum(spacing, 1e-6))).astype(np.int64)
+    cls[averaged] = np.iinfo(np.int64).min  # never paired with the other rows
+    raw_count = float(summary.samples[averaged].sum())
+    variance: dict[int, np.ndarray] = {}
+    counts: dict[int, float] = {}
+    for c in np.unique(cls[~averaged]):
+        idx = np.flatnonzero(cls == c)
+        counts[int(c)] = float(idx.size)
+        pair = idx[:-1][(np.diff(idx) == 1) & same[idx[:-1].clip(max=n - 2)] & (table[idx[1:]] == table[idx[:-1]])]
+        if pair.size < 20:
+            continue
+        dy = output[pair + 1] - output[pair]
+        mad = np.median(np.abs(dy - np.median(dy, axis=0)), axis=0)
+        variance[int(c)] = np.maximum((1.4826 * mad) ** 2 / 2.0, 1e-30)
+    weight = summary.samples.astype(float)
+    ref_var = summary.raw_variance
+    top = max(counts, key=counts.__getitem__) if counts else None
+    if top is not None and top in variance and counts[top] > raw_count:
+        # another kind of row is the most common: the reference, as without summaries
+        ref_var = variance[top]
+        weight = weight * float(np.median(ref_var / summary.raw_variance))
+    if variance:
+        known = np.array(sorted(variance))
+        for c in counts:
+            nearest = int(known[np.argmin(np.abs(known - c))])
+            weight[cls == c] = float(np.median(ref_var / variance[nearest]))
     return weight, spacing, typical
 
 

@@ -170,5 +170,16 @@ def design_derivative(temp_c: np.ndarray, reference: np.ndarray, order: int = 1)
     return np.concatenate([dp, dp * u[:, 0:1], dp * u[:, 1:2], dp * u[:, 2:3]], axis=1)
 
 
+def derivative_dot(temp_c: np.ndarray, reference: np.ndarray, coef: np.ndarray, order: int = 1) -> np.ndarray:
+    """(N,) `design_derivative(temp_c, reference, order) @ coef` without the (N, 16) matrix: per row,
+    the polynomial in (T - 25 degC) whose coefficients are the 16 mixed by the reference."""
+    tau = np.asarray(temp_c, dtype=float) - T_REF_C
+    c = np.asarray(coef, dtype=float).reshape(4, 4)  # groups [1, u_x, u_y, u_z] x powers 0..3
+    eff = c[0][None, :] + np.asarray(reference, dtype=float) @ c[1:]  # (N, 4)
+    if order == 1:
+        return eff[:, 1] + tau * (2.0 * eff[:, 2] + 3.0 * tau * eff[:, 3])
+    return 2.0 * eff[:, 2] + 6.0 * tau * eff[:, 3]
+
+
 def channel_list(channels: frozenset[str] | set[str]) -> list[str]:
     return sorted(channels, key=CHANNELS.index)

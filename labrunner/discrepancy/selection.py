@@ -43,7 +43,7 @@ import numpy as np
 from labrunner.domain import CHANNELS
 
 from .engine import ChannelSystem, Engine
-from .model import BASELINE, Selected, Spec, design_derivative, lag_tau, replace, without
+from .model import BASELINE, Selected, Spec, derivative_dot, lag_tau, replace, without
 from .terms import Term
 
 _GOLDEN = 0.5 * (np.sqrt(5.0) - 1.0)
@@ -221,7 +221,7 @@ class Searcher:
             beta, _ = self.engine.coefficients(spec, systems[c])
             coef = beta[systems[c].slices[BASELINE]]
             ref = meas.force_g if i < 3 else meas.rate_dps
-            out[c] = design_derivative(meas.temp_c, ref) @ coef
+            out[c] = derivative_dot(meas.temp_c, ref, coef)
         return out
 
     def _golden(self, spec: Spec, systems: dict[str, ChannelSystem], rho: dict[str, int], term: str,

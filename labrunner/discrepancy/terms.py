@@ -24,6 +24,7 @@ from labrunner.imu.effects import REGISTRY, candidate_causes
 
 from .blocks import Blocks
 from .measurements import Measurements
+from .summary import weighted_percentile
 from .temperature import element_temperature, temperature_rate
 
 TermFit = Fit  # the name the diagnosis used before the effects owned it
@@ -52,10 +53,15 @@ class TermContext:
         # the rounding (even de-quantised) looks just like them.
         q = meas.temperature_quantum_c or 0.0
         rate = np.abs(temperature_rate(meas.t_s, meas.temp_c, meas.run))
-        ramping = rate[rate > 0.1 / 60.0]
-        ramp_rate = float(np.percentile(ramping, 90)) if ramping.size > 10 else 0.0
+        # Rows that summarise raw samples count as their samples (as if the samples were the rows).
+        n = meas.summary.samples if meas.summary is not None else None
+        moving = rate > 0.1 / 60.0
+        ramping = rate[moving]
+        ramp_rate = (weighted_percentile(ramping, None if n is None else n[moving], 90)
+                     if ramping.size > 10 else 0.0)
         self.min_travel_c = max(0.2, 2.0 * q)
-        self.ramps_logged = bool(np.mean(rate > 0.2 / 60.0) > 0.02)
+        fast = rate > 0.2 / 60.0
+        self.ramps_logged = bool((np.mean(fast) if n is None else n[fast].sum() / n.sum()) > 0.02)
         self.min_lag_s = max(10.0, min(2.0 * q / ramp_rate, 300.0)) if q and ramp_rate else 10.0
         limits = [lim for cls in REGISTRY.values() if cls.candidate and (lim := cls.resolution_limit(self))]
         self.resolution_notes = [] if not q or not limits else [
