@@ -290,3 +290,11 @@ def octave_table(fit: NoiseFit, channel: str) -> str:
         lines.append(f"  {tau:8g}  {m.adev[j, i]:.4g}  {interval}  {fit.before.adev[j, i]:.4g}  "
                      f"{fit.after.adev[j, i]:.4g}  {fit.after.adev[j, i] / m.adev[j, i] - 1.0:+.3f}")
     return "\n".join(lines)
+
+
+def interval_json(curve: AllanCurve) -> dict[str, list[list[float]]] | None:
+    """The measured curve's 68 % interval per channel, [low, high] per octave (4 significant digits)."""
+    if curve.low is None or curve.high is None:
+        return None
+    return {c: [[float(f"{lo:.4g}"), float(f"{hi:.4g}")] for lo, hi in zip(curve.low[:, i], curve.high[:, i])]
+            for i, c in enumerate(CHANNELS)}

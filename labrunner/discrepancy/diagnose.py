@@ -23,7 +23,7 @@ from labrunner.imu.model import ImuModel
 
 from .advice import separating_measurement
 from .allan import TARGET as ALLAN_TARGET
-from .allan import AllanCurve, NoiseFit, fit_noise
+from .allan import AllanCurve, NoiseFit, fit_noise, interval_json
 from .blocks import make_blocks
 from .coverage import Coverage, assess
 from .crossval import elapsed_s, long_folds, long_segment_length, segment_length, time_folds
@@ -520,7 +520,8 @@ def _allan_json(fit: NoiseFit | None) -> dict[str, Any] | None:
     return {"tau_s": [float(t) for t in fit.measured.tau_s], "measured": curve(fit.measured),
             "simulated_before": curve(fit.before), "simulated_after": curve(fit.after),
             "mismatch_before": _round(fit.mismatch_before), "mismatch_after": _round(fit.mismatch_after),
-            "target": ALLAN_TARGET,
+            "target": ALLAN_TARGET, "measured_interval_68": interval_json(fit.measured),
+            "excess_before": _round(fit.excess_before), "excess_after": _round(fit.excess_after),
             "parameters": {"white": _round(fit.white), "bias_instability": _round(fit.bias_instability),
                            "rate_random_walk": _round(fit.rate_random_walk)}}
 

@@ -56,6 +56,9 @@ def test_the_noise_is_a_finding_with_its_parameters_and_allan_gain(tmp_path):
     assert np.all(low < fit.measured.adev) and np.all(fit.measured.adev < high)
     width = (high - low) / (2.0 * fit.measured.adev)
     assert np.all(width[0] < 0.01) and np.all(width[-1] > 0.1)
+    allan = result.to_json()["allan"]  # the JSON reports both: the mismatch, and the interval it is judged against
+    assert len(allan["measured_interval_68"]["accel_x"]) == fit.measured.tau_s.size
+    assert allan["excess_after"] == {c: 0.0 for c in CHANNELS} and allan["mismatch_after"]["gyro_x"] <= TARGET
     # The extended model carries the fitted noise model, and the report draws the two curves.
     assert result.model.effects["bias_instability"].b["gyro_z"] == pytest.approx(p["bias_instability"]["gyro_z"])
     assert result.model.effects["bias_random_walk"].sigma_per_sqrt_s["accel_x"] == pytest.approx(
