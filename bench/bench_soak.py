@@ -37,7 +37,7 @@ rates: {triangular: {max_dps: 100, step_dps: 25}}
 settle_s: 5
 record_s: 30
 record_poll_s: 10
-faults: {policy: pause, retries: 3, backoff_s: 1.0, max_dropped_frames: 0, max_rerecords: 3}
+faults: {policy: pause, max_dropped_frames: 0, max_rerecords: 3}
 fit: {run: false}
 """
 
