@@ -12,9 +12,10 @@ two-core development machine; the CPU time (user + sys) is the figure compared w
 time on the shared machine also counts the others' load (both are printed, with the load).
 
 With `--store PATH`, the whole `labrunner diagnose PATH` command runs on a store (the paper
-campaign's, e.g.) in a child process, and its wall and CPU time are compared with 30 s and its
-peak RSS with 2 GB (issue 15, target 2). `--hog` runs it with a second process spinning on one
-core (issue 15, target 5). Exit 0 when every target is met, 1 otherwise.
+campaign's, e.g.) in a child process, and its CPU time (and, for information, its wall time) is
+compared with 30 s and its peak RSS with 2 GB (issue 15, target 2). `--hog` runs it with a second
+process spinning on one core (issue 15, target 5). Exit 0 when the CPU time and memory targets are
+met, 1 otherwise (the wall time on the shared machine counts the others' load; it is printed with it).
 """
 
 from __future__ import annotations
@@ -74,8 +75,8 @@ def store(path: Path) -> int:
         m = run.measured
         print(f"labrunner diagnose {path}: {m.line()}")
         results = [report("diagnose store CPU time", m.cpu_s, TARGET_S, "s"),
-                   report("diagnose store wall time", m.wall_s, TARGET_S, "s"),
                    report("diagnose store peak RSS", m.peak_rss_bytes / 1e9, STORE_RSS_LIMIT_BYTES / 1e9, "GB")]
+        report("diagnose store wall time", m.wall_s, TARGET_S, "s")  # counts the others' load: not the verdict
     return 0 if all(r.ok for r in results) else 1
 
 

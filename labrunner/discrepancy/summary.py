@@ -5,7 +5,8 @@ The diagnosis fits block means of rows weighted by their information, so a recor
 (every candidate term changes little within a second). Reading the store one sample block at a
 time and keeping only those means, the samples' count and, per channel, the within-second sum
 of squares of the error (measured minus reference) bounds memory by the number of seconds
-logged rather than the number of samples (12 M samples of the paper campaign are 0.55 M rows).
+logged rather than the number of samples (12 M samples of the paper campaign are 0.55 M rows), and
+at most `MAX_BINS_PER_BLOCK` summaries per sample block (longer means in longer records).
 
 What the raw samples say beyond the means is kept too, so the figures that are statistics of the
 samples stay so: the held-out and in-sample RMS over the samples (`sample_rms`: within-second
@@ -28,6 +29,10 @@ from labrunner.domain import CSV_COLUMNS, UP_VECTORS, orientation_index
 logger = logging.getLogger(__name__)
 
 BIN_S = 1.0  # the summaries' length
+# ... or longer in a long sample block: at most this many summaries per block, so the rows (and the
+# memory) follow the number of blocks and seconds of monitor rows, not the length of the records
+# (a paper record step of 60 s keeps its 1 s means; one ten times as long gets 10 s means).
+MAX_BINS_PER_BLOCK = 60
 _RESERVOIR = 1_000_000  # successive differences of raw samples kept for the noise statistics
 _CHANNELS = 6
 
@@ -137,7 +142,7 @@ class _Builder:
             self.weight_diffs.add(np.diff(output, axis=0)[steady])
             self.raw_spacing.append(float(np.median(dt[good])) if good.any() else 1.0 / block.rate_hz)
         counter = np.asarray(block.counter, dtype=np.int64)
-        per_bin = max(int(round(block.rate_hz * self.bin_s)), 1)
+        per_bin = max(int(round(block.rate_hz * self.bin_s)), -(-n // MAX_BINS_PER_BLOCK), 1)
         key = (counter - counter[0]) // per_bin
         starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
         counts = np.diff(np.r_[starts, n])
