@@ -107,6 +107,11 @@ class ImuStreamSim:
             f.skip_frames -= n
             log.debug("imu sim: %d frame(s) not sent (counter gap)", n)
         size = self.codec.frame_size
+        if not f.corrupt_frames and keep.all():  # the usual chunk: sent as encoded, no copy
+            if data and self.port.write(data) == len(data):
+                self.last_sent_counter = int(ks[-1]) % 65536
+            self.frames_sent += ks.size
+            return
         raw = np.frombuffer(data, dtype=np.uint8).reshape(ks.size, size).copy()
         intact = keep.copy()
         if f.corrupt_frames:
