@@ -39,8 +39,18 @@ def _line(index: int, from_csv: bool) -> int:
     return index + 2 if from_csv else index
 
 
+_EMPTY = ("", "nan", "NaN", "None")  # cells that mean "no value" (chamber_c may be empty)
+_TRUE = ("1", "1.0", "True", "true")
+_POWER_ON_TEXT = ("0", "0.0", "False", "false") + _TRUE
+
+
 def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) -> pd.DataFrame:
-    """Load and validate campaign data; sorted as given (time order within each run is checked)."""
+    """Load and validate campaign data; sorted as given (time order within each run is checked).
+
+    A CSV is parsed with typed columns first (numbers as float64, orientation and power_on as
+    categories: no Python object per cell); a file that does not parse so is read again as text,
+    cell by cell, for the message that names its line and column. A frame whose columns are typed
+    already (a store's) is validated without copies."""
     from_csv = not isinstance(source, pd.DataFrame)
     label = name or (str(source) if from_csv else "data")
     if not isinstance(source, pd.DataFrame):
@@ -49,13 +59,9 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
             raise CampaignDataError(label, "file not found")
         if path.is_dir():
             raise CampaignDataError(label, "is a directory; expected a campaign CSV file")
-        try:
-            raw = pd.read_csv(path, dtype=str, keep_default_na=False, na_values=[], skipinitialspace=True)
-        except pd.errors.EmptyDataError:
-            raise CampaignDataError(label, "the file is empty; expected a header with " + ", ".join(COLUMNS)) from None
-        except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-            raise CampaignDataError(label, f"not a readable CSV file ({str(exc).strip()})") from None
-        raw.columns = [str(c).strip() for c in raw.columns]
+        raw = _read_typed(path, label)
+        if raw is None:
+            raw = _read_text(path, label)
     else:
         raw = source.reset_index(drop=True)
     missing = [c for c in COLUMNS if c not in raw.columns]
@@ -65,20 +71,22 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
     if len(raw) == 0:
         raise CampaignDataError(label, "no data rows")
 
-    out = pd.DataFrame(index=raw.index)
+    out: dict[str, object] = {}
     for col in ("t_s", "chamber_c", "imu_temp_c", "table_rate_dps") + OUTPUT_COLUMNS:
         series = raw[col]
-        if from_csv or series.dtype == object:
+        if series.dtype == object or isinstance(series.dtype, pd.StringDtype):
             text = series.astype(str).str.strip()
-            empty = text.isin(["", "nan", "NaN", "None"])
+            empty = text.isin(_EMPTY)
             values = pd.to_numeric(text.where(~empty, None), errors="coerce")
             bad = values.isna() & ~empty
             if bad.any():
                 i = int(np.flatnonzero(bad.to_numpy())[0])
                 raise CampaignDataError(label, f"{text.iloc[i]!r} is not a number", _line(i, from_csv), col)
+            arr = values.to_numpy(dtype=float)
+        elif series.dtype == np.float64:
+            arr = series.to_numpy()  # a view: the typed CSV reader's and a store's columns
         else:
-            values = pd.to_numeric(series, errors="coerce")
-        arr = values.to_numpy(dtype=float)
+            arr = pd.to_numeric(series, errors="coerce").to_numpy(dtype=float)
         if col in REQUIRED_NUMERIC:
             nan = ~np.isfinite(arr)
             if nan.any():
@@ -89,44 +97,106 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
             raise CampaignDataError(label, "value is infinite", _line(i, from_csv), col)
         out[col] = arr
 
-    if from_csv or raw["run"].dtype == object:
-        runs = pd.to_numeric(raw["run"].astype(str).str.strip(), errors="coerce")
+    series = raw["run"]
+    if series.dtype == np.int64:
+        out["run"] = series.to_numpy()
     else:
-        runs = pd.to_numeric(raw["run"], errors="coerce")
-    r = runs.to_numpy(dtype=float)
-    with np.errstate(invalid="ignore"):
-        bad = ~np.isfinite(r) | (np.round(r) != r) | (np.abs(r) > 2**31)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise CampaignDataError(label, f"{raw['run'].iloc[i]!r} is not an integer run number", _line(i, from_csv),
-                                "run")
-    out["run"] = r.astype(np.int64)
+        if series.dtype == object or isinstance(series.dtype, pd.StringDtype):
+            runs = pd.to_numeric(series.astype(str).str.strip(), errors="coerce")
+        else:
+            runs = pd.to_numeric(series, errors="coerce")
+        r = runs.to_numpy(dtype=float)
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(r) | (np.round(r) != r) | (np.abs(r) > 2**31)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise CampaignDataError(label, f"{raw['run'].iloc[i]!r} is not an integer run number",
+                                    _line(i, from_csv), "run")
+        out["run"] = r.astype(np.int64)
 
-    orient = raw["orientation"].astype(str).str.strip()
-    known = orient.isin(ORIENTATIONS).to_numpy()
-    if not known.all():
-        i = int(np.flatnonzero(~known)[0])
-        raise CampaignDataError(label, f"unknown orientation {orient.iloc[i]!r}; expected one of "
-                                + " ".join(ORIENTATIONS), _line(i, from_csv), "orientation")
-    out["orientation"] = pd.Categorical(orient, categories=list(ORIENTATIONS))
+    out["orientation"] = _orientations(raw["orientation"], label, from_csv)
 
-    t = out["t_s"].to_numpy()
-    run = out["run"].to_numpy()
+    t = out["t_s"]
+    run = out["run"]
+    assert isinstance(t, np.ndarray) and isinstance(run, np.ndarray)
     same_run = run[1:] == run[:-1]
     back = np.flatnonzero(same_run & (np.diff(t) < 0))
     if back.size:
         i = int(back[0]) + 1
         raise CampaignDataError(label, f"time goes backwards within run {run[i]} ({t[i - 1]} then {t[i]})",
                                 _line(i, from_csv), "t_s")
+    columns = list(COLUMNS)
     if POWER_ON in raw.columns:  # optional (docs/design.md, "The campaign CSV"): 1 on a real power-on's first row
-        text = raw[POWER_ON].astype(str).str.strip()
-        ok = text.isin(["0", "1", "0.0", "1.0", "True", "False", "true", "false"]).to_numpy()
-        if not ok.all():
-            i = int(np.flatnonzero(~ok)[0])
-            raise CampaignDataError(label, f"{text.iloc[i]!r} is not 0 or 1", _line(i, from_csv), POWER_ON)
-        out[POWER_ON] = text.isin(["1", "1.0", "True", "true"]).to_numpy().astype(np.int64)
-        return out[list(COLUMNS) + [POWER_ON]]
-    return out[list(COLUMNS)]
+        out[POWER_ON] = _power_on(raw[POWER_ON], label, from_csv)
+        columns.append(POWER_ON)
+    return pd.DataFrame({c: out[c] for c in columns}, copy=False)
+
+
+def _categories(series: pd.Series) -> tuple[np.ndarray, list[str]]:
+    """Integer codes and stripped text labels of a column: per distinct value, not per cell."""
+    cat = series.array if isinstance(series.dtype, pd.CategoricalDtype) else pd.Categorical(series)
+    codes = np.asarray(cat.codes)
+    # A missing cell (code -1) reads as the text the row-wise path saw: 'nan'.
+    labels = [str(c).strip() for c in cat.categories] + ["nan"]
+    return codes, labels
+
+
+def _orientations(series: pd.Series, label: str, from_csv: bool) -> pd.Categorical:
+    codes, labels = _categories(series)
+    known = np.array([lab in ORIENTATIONS for lab in labels])
+    target = np.array([ORIENTATIONS.index(lab) if ok else -1 for lab, ok in zip(labels, known)], dtype=np.int8)
+    unknown = ~known[codes]
+    if unknown.any():
+        i = int(np.flatnonzero(unknown)[0])
+        raise CampaignDataError(label, f"unknown orientation {labels[codes[i]]!r}; expected one of "
+                                + " ".join(ORIENTATIONS), _line(i, from_csv), "orientation")
+    return pd.Categorical.from_codes(target[codes], categories=list(ORIENTATIONS))
+
+
+def _power_on(series: pd.Series, label: str, from_csv: bool) -> np.ndarray:
+    codes, labels = _categories(series)
+    ok = np.array([lab in _POWER_ON_TEXT for lab in labels])
+    if not ok[codes].all():
+        i = int(np.flatnonzero(~ok[codes])[0])
+        raise CampaignDataError(label, f"{labels[codes[i]]!r} is not 0 or 1", _line(i, from_csv), POWER_ON)
+    return np.array([lab in _TRUE for lab in labels], dtype=np.int8)[codes]  # 0/1: one byte a row
+
+
+def _read_text(path: Path, label: str) -> pd.DataFrame:
+    """Every cell as text: slow, but what the located messages of a file that does not parse need."""
+    try:
+        raw = pd.read_csv(path, dtype=str, keep_default_na=False, na_values=[], skipinitialspace=True)
+    except pd.errors.EmptyDataError:
+        raise CampaignDataError(label, "the file is empty; expected a header with " + ", ".join(COLUMNS)) from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise CampaignDataError(label, f"not a readable CSV file ({str(exc).strip()})") from None
+    raw.columns = [str(c).strip() for c in raw.columns]
+    return raw
+
+
+def _read_typed(path: Path, label: str) -> pd.DataFrame | None:
+    """The CSV with numeric columns parsed as float64 by pandas' C reader, or None when a cell is not
+    a number (or the file is not a CSV at all): the text reader then says where."""
+    try:
+        header = pd.read_csv(path, nrows=0, skipinitialspace=True).columns
+    except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError, ValueError):
+        return None
+    names = {str(c).strip(): c for c in header}
+    if len(names) != len(header) or any(c not in names for c in COLUMNS):
+        return None  # duplicate or missing columns: the text reader's messages
+    dtype: dict[str, object] = {names[c]: float for c in COLUMNS if c != "orientation"}
+    dtype[names["orientation"]] = "category"
+    wanted = set(COLUMNS)
+    if POWER_ON in names:
+        dtype[names[POWER_ON]] = "category"
+        wanted.add(POWER_ON)
+    try:
+        raw = pd.read_csv(path, dtype=dtype, usecols=[names[c] for c in names if c in wanted],  # type: ignore[arg-type]
+                          keep_default_na=False, na_values=list(_EMPTY), skipinitialspace=True)
+    except (ValueError, pd.errors.ParserError, UnicodeDecodeError, OverflowError):
+        return None
+    raw.columns = [str(c).strip() for c in raw.columns]
+    return raw
 
 
 def write_campaign(frame: pd.DataFrame, path: str | Path) -> None:

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from labrunner.campaign_csv import CampaignDataError, read_campaign
@@ -66,5 +67,14 @@ def mark_power_ons(frame: pd.DataFrame, events: pd.DataFrame) -> pd.DataFrame:
 
     runs = {int(m.group(1)) for text in events.get("message", pd.Series(dtype=str)).astype(str)
             if (m := re.search(r"powered on \(run (\d+)\)", text))}
-    first = ~frame["run"].duplicated()
-    return frame.assign(power_on=(first & frame["run"].isin(runs)).astype("int64"))
+    run = frame["run"].to_numpy()
+    # The first row of each run: where the run changes, when no run comes back later (a store's rows
+    # are in time order); else by hashing every row's run.
+    change = np.flatnonzero(np.concatenate(([True], run[1:] != run[:-1])))
+    if np.unique(run[change]).size == change.size:
+        first = np.zeros(run.size, dtype=bool)
+        first[change] = True
+    else:
+        first = ~frame["run"].duplicated().to_numpy()
+    mark = first & np.isin(run, np.fromiter(runs, dtype=np.int64, count=len(runs)))
+    return frame.assign(power_on=mark.astype(np.int8))

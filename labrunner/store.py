@@ -58,6 +58,7 @@ from sqlalchemy.engine import Connection, CursorResult, Engine
 from sqlalchemy.exc import DatabaseError, IntegrityError, OperationalError
 
 from labrunner.campaign_csv import COLUMNS
+from labrunner.domain import ORIENTATIONS
 from labrunner.errors import UserError
 from labrunner.store_address import StoreAddress, store_address
 from labrunner.version import __version__
@@ -1024,38 +1025,66 @@ class Store:
             for row in conn.execute(q).mappings():
                 yield _block_from_row(row, self.path)
 
+    def sample_count(self, campaign_id: int, kinds: Sequence[str] = ("record",)) -> int:
+        """Samples stored in a campaign's blocks of the given kinds (from the block rows, no blob read)."""
+        q = select(func.coalesce(func.sum(sample_blocks.c.n), 0)).where(
+            sample_blocks.c.campaign_id == campaign_id, sample_blocks.c.kind.in_(list(kinds)))
+        with self.reading() as conn:
+            return int(conn.execute(q).scalar_one())
+
     def samples_frame(self, campaign_id: int, include_monitor: bool = False, with_steps: bool = False,
                       remount_c: float | None = None) -> pd.DataFrame:
         """All samples in the campaign CSV columns (records; with monitor rows if asked), time-ordered.
+
+        Orientation is categorical (the six orientations first, then any other label a block holds,
+        for the validation to name), `run` int64, the rest float64.
 
         `with_steps` adds, per row, `kind` (record or monitor), the sequencer's `state`, the
         `step_idx` of its step, the chamber `setpoint_c` and the commanded table rate `rate_cmd_dps`
         (see `_with_steps`; `remount_c` is the procedure's remount temperature)."""
         kinds = ("record", "monitor") if include_monitor else ("record",)
-        parts: dict[str, list[np.ndarray]] = {c: [] for c in (*COLUMNS, *(STEP_COLUMNS if with_steps else ()))}
+        # Columns preallocated to the stored sample count and filled block by block: no per-row
+        # Python objects (orientation is one code per block) and no concatenation copy.
+        total = self.sample_count(campaign_id, kinds)
+        cols = {c: np.empty(total) for c in COLUMNS if c not in ("run", "orientation")}
+        run = np.empty(total, dtype=np.int64)
+        codes = np.empty(total, dtype=np.int8)
+        labels: list[str] = list(ORIENTATIONS)
+        step_idx = np.empty(total if with_steps else 0)
+        kind = np.empty(total if with_steps else 0, dtype=object)
+        at = 0
         for b in self.blocks(campaign_id, kinds):
             n = len(b)
             if n == 0:
                 continue
+            if at + n > total:  # rows written since the count: read what was counted
+                break
+            sl = slice(at, at + n)
             t = b.times()
-            if with_steps:
-                parts["kind"].append(np.full(n, b.kind, dtype=object))
-                parts["step_idx"].append(np.full(n, np.nan if b.step_idx is None else b.step_idx, dtype=float))
-                parts["state"].append(np.full(n, None, dtype=object))
-            parts["t_s"].append(t)
-            parts["run"].append(np.full(n, b.run, dtype=np.int64))
-            parts["orientation"].append(np.full(n, b.orientation, dtype=object))
-            parts["chamber_c"].append(_interp_readings(t, b.chamber))
-            parts["imu_temp_c"].append(b.temp_c.astype(float))
-            parts["table_rate_dps"].append(_interp_readings(t, b.table, default=0.0))
+            cols["t_s"][sl] = t
+            if b.orientation not in labels:
+                labels.append(b.orientation)
+            codes[sl] = labels.index(b.orientation)
+            run[sl] = b.run
+            cols["chamber_c"][sl] = _interp_readings(t, b.chamber)
+            cols["imu_temp_c"][sl] = b.temp_c
+            cols["table_rate_dps"][sl] = _interp_readings(t, b.table, default=0.0)
             for j, c in enumerate(("ax_g", "ay_g", "az_g")):
-                parts[c].append(b.accel_g[:, j].astype(float))
+                cols[c][sl] = b.accel_g[:, j]
             for j, c in enumerate(("gx_dps", "gy_dps", "gz_dps")):
-                parts[c].append(b.gyro_dps[:, j].astype(float))
-        if not parts["t_s"]:
-            frame = pd.DataFrame({c: pd.Series(dtype=float) for c in parts})
-        else:
-            frame = pd.DataFrame({c: np.concatenate(v) for c, v in parts.items() if v})
+                cols[c][sl] = b.gyro_dps[:, j]
+            if with_steps:
+                step_idx[sl] = np.nan if b.step_idx is None else b.step_idx
+                kind[sl] = b.kind
+            at += n
+        orientation: Any = pd.Categorical.from_codes(codes[:at], categories=labels)
+        if with_steps:  # the diagnosis' frame keeps its text labels
+            orientation = np.asarray(labels, dtype=object)[codes[:at]]
+        data: dict[str, Any] = {c: (run[:at] if c == "run" else orientation if c == "orientation" else cols[c][:at])
+                                for c in COLUMNS}
+        if with_steps:
+            data.update(kind=kind[:at], state=np.full(at, None, dtype=object), step_idx=step_idx[:at])
+        frame = pd.DataFrame(data, copy=False)
         if include_monitor:
             frame = frame.sort_values("t_s", kind="stable").reset_index(drop=True)
         return self._with_steps(campaign_id, frame, remount_c) if with_steps else frame

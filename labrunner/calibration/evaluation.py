@@ -200,6 +200,16 @@ def score(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.ndarr
         result.static[name] = _static_check(values, ref, static, lab)
 
 
+def _draw(rng: np.random.Generator, n: int, fraction: float, chunk: int = 1 << 20) -> np.ndarray:
+    """(n,) bool: uniform draws below `fraction`, in chunks (the generator's stream is the same as one
+    `rng.random(n)`: the same rows, without n doubles at once)."""
+    out = np.empty(n, dtype=bool)
+    for lo in range(0, n, chunk):
+        hi = min(lo + chunk, n)
+        out[lo:hi] = rng.random(hi - lo) < fraction
+    return out
+
+
 def _limit_rows(rows: np.ndarray, max_rows: int, rng: np.random.Generator) -> np.ndarray:
     idx = np.flatnonzero(rows)
     if idx.size > max_rows:
@@ -235,8 +245,9 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
         train_rec: Records | None = None
         test_rows = np.zeros_like(in_record)
         if name == "random":
-            test_rows = in_record & (rng.random(labels.size) < holdout_fraction)
-            train_rec = records_from_labels(a, labels, records.row_interval_s, in_record & ~test_rows)
+            test_rows = in_record & _draw(rng, labels.size, holdout_fraction)
+            train_rec = records_from_labels(a, labels, records.row_interval_s, in_record & ~test_rows,
+                                            with_labels=False)
             res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
         elif name in ("between_temperatures", "beyond_temperatures"):
             k = len(steps)
@@ -251,7 +262,7 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
                 results.append(res)
                 continue
             test_rec = np.isin(records.step, held)
-            train_rec = records.subset(~test_rec)
+            train_rec = records.subset(~test_rec, with_labels=False)
             test_rows = in_record & test_rec[np.maximum(labels, 0)]
             res.train_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[np.setdiff1d(order, held)])]
             res.test_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[held])]
@@ -261,7 +272,7 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
                 res.skipped = why
                 results.append(res)
                 continue
-            train_rec = records.subset(~blocks)
+            train_rec = records.subset(~blocks, with_labels=False)
             test_rows = in_record & blocks[np.maximum(labels, 0)]
             res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
             res.description += f" ({why})"
@@ -274,7 +285,7 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
             held_levels = levels[1:-1:2]
             mag = np.abs(records.rate_dps)
             test_rec = np.any(np.abs(mag[:, None] - held_levels[None, :]) <= 0.5, axis=1)
-            train_rec = records.subset(~test_rec)
+            train_rec = records.subset(~test_rec, with_labels=False)
             test_rows = in_record & test_rec[np.maximum(labels, 0)]
             res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
             res.description += f" (held out: {', '.join(f'{v:g}' for v in np.round(held_levels, 3))} deg/s)"

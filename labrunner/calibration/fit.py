@@ -316,7 +316,7 @@ def summarize_data(frame: pd.DataFrame, records: Records, steps: TemperatureStep
         "rows": int(len(frame)), "rows_in_records": int((records.row_record >= 0).sum()), "records": len(records),
         "runs": int(frame["run"].nunique()),
         "time_range_s": [float(t.min()), float(t.max())], "imu_temp_range_c": [float(temp.min()), float(temp.max())],
-        "orientations": sorted({str(o) for o in frame["orientation"].astype(str).unique()},
+        "orientations": sorted({str(o) for o in frame["orientation"].unique()},  # per value, not per row
                                key=lambda o: ORIENTATIONS.index(o)),
         "table_rates_dps": sorted({round(float(r), 1) for r in records.rate_dps}),
         "temperature_steps": per_step,

@@ -23,7 +23,9 @@ the record's duration, i.e. by the number of raw samples it stands for.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -87,12 +89,14 @@ class Records:
     def up(self) -> np.ndarray:
         return UP_VECTORS[self.orientation]
 
-    def subset(self, keep: np.ndarray) -> Records:
-        """The records selected by a boolean mask or index array (row labels renumbered)."""
+    def subset(self, keep: np.ndarray, with_labels: bool = True) -> Records:
+        """The records selected by a boolean mask or index array (row labels renumbered; none with
+        `with_labels=False`: a training part's summaries, whose rows nobody looks up)."""
         idx = np.flatnonzero(keep) if np.asarray(keep).dtype == bool else np.asarray(keep, dtype=np.int64)
         remap = np.full(len(self) + 1, -1, dtype=np.int64)
         remap[idx] = np.arange(idx.size)
-        rows = remap[self.row_record]  # -1 maps via remap[-1] == -1
+        # -1 maps via remap[-1] == -1
+        rows = remap[self.row_record] if with_labels else np.zeros(0, dtype=np.int64)
         return Records(
             row_record=rows, run=self.run[idx], orientation=self.orientation[idx], rate_dps=self.rate_dps[idx],
             temp_c=self.temp_c[idx], temp_span_c=self.temp_span_c[idx], t_start_s=self.t_start_s[idx],
@@ -121,42 +125,80 @@ def reference_values(orientation: np.ndarray, rate_dps: np.ndarray) -> np.ndarra
     return np.concatenate([up, up * np.asarray(rate_dps, dtype=float)[:, None]], axis=1)
 
 
-def frame_arrays(frame: pd.DataFrame) -> dict[str, np.ndarray]:
-    """The numeric columns the analysis needs, as arrays (orientation as an index)."""
+class Outputs:
+    """The six output columns of the rows, indexed like an (n, 6) array without being one: `y[rows]`
+    stacks the selected rows only and `y[rows, k]` is column k's; a campaign's columns are not copied
+    into a second (n, 6) array (half a gigabyte at paper scale)."""
+
+    def __init__(self, columns: list[np.ndarray]) -> None:
+        self.columns = columns
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.columns[0].size), len(self.columns))
+
+    def __len__(self) -> int:
+        return int(self.columns[0].size)
+
+    def __getitem__(self, key: object) -> np.ndarray:
+        if isinstance(key, tuple):
+            rows, k = key
+            if isinstance(k, int | np.integer):
+                return self.columns[int(k)][rows]
+            return np.column_stack([c[rows] for c in self.columns])[:, k]
+        return np.column_stack([c[key] for c in self.columns])  # type: ignore[index]
+
+    def __array__(self, dtype: object = None, copy: object = None) -> np.ndarray:
+        return np.column_stack(self.columns).astype(dtype or float, copy=False)
+
+
+def frame_arrays(frame: pd.DataFrame) -> dict[str, Any]:
+    """The numeric columns the analysis needs, as arrays (orientation as an index into ORIENTATIONS,
+    int8; `y` the outputs as `Outputs`). The frame's own float64 and int64 columns are views, not copies."""
     orient = frame["orientation"]
     if isinstance(orient.dtype, pd.CategoricalDtype) and list(orient.cat.categories) == list(ORIENTATIONS):
-        codes = orient.cat.codes.to_numpy().astype(np.int64)
+        codes = orient.cat.codes.to_numpy()
     else:
-        codes = pd.Categorical(orient.astype(str), categories=list(ORIENTATIONS)).codes.astype(np.int64)
+        codes = pd.Categorical(orient.astype(str), categories=list(ORIENTATIONS)).codes
     return {
         "t": frame["t_s"].to_numpy(dtype=float),
         "run": frame["run"].to_numpy(dtype=np.int64),
-        "orientation": codes,
+        "orientation": np.asarray(codes),
         "temp": frame["imu_temp_c"].to_numpy(dtype=float),
         "rate": frame["table_rate_dps"].to_numpy(dtype=float),
-        "y": np.column_stack([frame[c].to_numpy(dtype=float) for c in OUTPUT_COLUMNS]),
+        "y": Outputs([frame[c].to_numpy(dtype=float) for c in OUTPUT_COLUMNS]),
     }
 
 
-def _segment_starts(a: dict[str, np.ndarray], opt: RecordOptions) -> np.ndarray:
-    """Row indices where a new segment starts (always includes 0)."""
-    t, run, orient, rate = a["t"], a["run"], a["orientation"], a["rate"]
-    n = t.size
-    brk = np.zeros(n, dtype=bool)
-    brk[0] = True
-    if n < 2:
-        return np.flatnonzero(brk)
+CHUNK_ROWS = 1 << 20  # rows per chunk of the row-wise passes: bounded temporaries at any campaign size
+
+
+def _segment_starts(a: dict[str, Any], opt: RecordOptions) -> np.ndarray:
+    """Row indices where a new segment starts (always includes 0); in chunks of CHUNK_ROWS rows."""
+    n = a["t"].size
+    out = [np.zeros(1, dtype=np.int64)]
+    for lo in range(1, n, CHUNK_ROWS):
+        hi = min(lo + CHUNK_ROWS, n)
+        # Rows lo..hi-1 need their two neighbours' intervals on either side.
+        a0, b0 = max(lo - 2, 0), min(hi + 2, n)
+        brk = _breaks(a["t"][a0:b0], a["run"][a0:b0], a["orientation"][a0:b0], a["rate"][a0:b0], opt)
+        out.append(np.flatnonzero(brk[lo - a0 - 1:hi - a0 - 1]) + lo)
+    return np.concatenate(out)
+
+
+def _breaks(t: np.ndarray, run: np.ndarray, orient: np.ndarray, rate: np.ndarray, opt: RecordOptions) -> np.ndarray:
+    """(n - 1,): whether row i + 1 starts a new segment after row i."""
     dt = np.diff(t)
-    brk[1:] |= (run[1:] != run[:-1]) | (orient[1:] != orient[:-1])
+    brk = (run[1:] != run[:-1]) | (orient[1:] != orient[:-1])
     tol = opt.rate_tol_dps + opt.rate_tol_rel * np.maximum(np.abs(rate[1:]), np.abs(rate[:-1]))
-    brk[1:] |= np.abs(np.diff(rate)) > tol
+    brk |= np.abs(np.diff(rate)) > tol
     # A gap is an interval much longer than the shorter of its neighbours' intervals.
     pos = np.where(dt > 0, dt, np.inf)
     prev = np.concatenate(([np.inf], pos[:-1]))
     nxt = np.concatenate((pos[1:], [np.inf]))
     ref = np.minimum(prev, nxt)
-    brk[1:] |= np.isfinite(ref) & (dt > opt.gap_factor * ref)
-    return np.flatnonzero(brk)
+    brk |= np.isfinite(ref) & (dt > opt.gap_factor * ref)
+    return brk
 
 
 def _stable_pieces(temp: np.ndarray, rate: np.ndarray, temp_tol: float, rate_tol: float) -> list[int]:
@@ -201,10 +243,10 @@ def segment_records(frame: pd.DataFrame, options: RecordOptions | None = None) -
         starts = np.unique(np.concatenate([starts, *extra]))
         stops = np.append(starts[1:], n)
 
-    dt_all = np.diff(a["t"])
-    typical = float(np.median(dt_all[dt_all > 0])) if np.any(dt_all > 0) else 1.0
     counts = stops - starts
     span_time = a["t"][stops - 1] - a["t"][starts]
+    # A one-row record stands for the typical row interval (averaged rows a few seconds apart).
+    typical = _typical_interval(a["t"]) if (counts == 1).any() else 1.0
     interval = np.where(counts > 1, span_time / np.maximum(counts - 1, 1), typical)
     # Soaks only: a record whose temperature drifts (a ramp) is not a calibration point.
     drift = np.abs(temp[stops - 1] - temp[starts])
@@ -213,78 +255,140 @@ def segment_records(frame: pd.DataFrame, options: RecordOptions | None = None) -
     starts, stops, interval = starts[keep], stops[keep], interval[keep]
 
     row_record = np.full(n, -1, dtype=np.int64)
-    lengths = stops - starts
-    if starts.size:
-        # Label rows of kept records: a run-length fill via cumulative sums of +1/-1 markers.
-        marks = np.zeros(n + 1, dtype=np.int64)
-        np.add.at(marks, starts, 1)
-        np.add.at(marks, stops, -1)
-        inside = np.cumsum(marks[:-1]) > 0
-        ids = np.repeat(np.arange(starts.size), lengths)
-        row_record[inside] = ids
-    recs = records_from_labels(a, row_record, interval)
-    return recs
+    for k, (s, e) in enumerate(zip(starts.tolist(), stops.tolist())):  # records are disjoint row ranges
+        row_record[s:e] = k
+    return records_from_labels(a, row_record, interval)
 
 
-def records_from_labels(a: dict[str, np.ndarray], row_record: np.ndarray, row_interval_s: np.ndarray,
-                        row_mask: np.ndarray | None = None) -> Records:
+def _typical_interval(t: np.ndarray) -> float:
+    """Median positive row interval (1 s without one)."""
+    dt = np.diff(t)
+    dt = dt[dt > 0]
+    return float(np.median(dt)) if dt.size else 1.0
+
+
+def records_from_labels(a: dict[str, Any], row_record: np.ndarray, row_interval_s: np.ndarray,
+                        row_mask: np.ndarray | None = None, *, with_labels: bool = True) -> Records:
     """Record summaries from row labels, optionally using only rows where `row_mask` is true.
 
     With a mask (e.g. the training rows of a random split) records lose rows; records left
-    with no rows are dropped and the labels renumbered.
+    with no rows are dropped and the labels renumbered. `with_labels=False` leaves
+    `row_record` empty (a training part's summaries, whose rows nobody looks up).
+
+    The rows are summed in chunks of about CHUNK_ROWS cut between records, so each record's sums
+    run over its rows in order within one chunk (`np.bincount`, bin 0 for rows in no record), the
+    same numbers as one pass over all rows, with temporaries of a chunk's size.
     """
-    labels = row_record if row_mask is None else np.where(row_mask, row_record, -1)
     n_rec = int(row_interval_s.size)
-    sel = labels >= 0
-    lab = labels[sel]
-    cnt = np.bincount(lab, minlength=n_rec).astype(float)
-    present = cnt > 0
-    if not present.all():
-        remap = np.full(n_rec + 1, -1, dtype=np.int64)
-        remap[np.flatnonzero(present)] = np.arange(int(present.sum()))
-        labels = remap[labels]
-        lab = labels[sel]
-        cnt = cnt[present]
-        row_interval_s = row_interval_s[present]
-        n_rec = int(present.sum())
 
-    def mean_of(x: np.ndarray) -> np.ndarray:
-        return np.bincount(lab, weights=x[sel], minlength=n_rec) / np.maximum(cnt, 1)
+    def labels_of(lo: int, hi: int) -> np.ndarray:
+        lab = row_record[lo:hi]
+        return lab if row_mask is None else np.where(row_mask[lo:hi], lab, -1)
 
-    def first_of(x: np.ndarray) -> np.ndarray:
-        out = np.empty(n_rec, dtype=x.dtype)
-        idx = np.flatnonzero(sel)
-        # Rows are in order, so the first occurrence of each label is its first row.
-        uniq, first = np.unique(lab, return_index=True)
-        out[uniq] = x[idx[first]]
-        return out
-
-    temp = mean_of(a["temp"])
-    t_all = a["t"]
-    t_start = first_of(t_all)
-    idx = np.flatnonzero(sel)
-    uniq, last_rev = np.unique(lab[::-1], return_index=True)
-    t_end = np.empty(n_rec)
-    t_end[uniq] = t_all[idx[::-1][last_rev]]
+    cnt = np.zeros(n_rec)
+    sums = np.zeros((n_rec, 8))  # temp, rate, six outputs
+    sq = np.zeros((n_rec, 6))
+    first = np.zeros(n_rec, dtype=np.int64)
+    last = np.zeros(n_rec, dtype=np.int64)
     tmax = np.full(n_rec, -np.inf)
     tmin = np.full(n_rec, np.inf)
-    np.maximum.at(tmax, lab, a["temp"][sel])
-    np.minimum.at(tmin, lab, a["temp"][sel])
-    rate = mean_of(a["rate"])
-    orient = first_of(a["orientation"])
-    run = first_of(a["run"])
-    y = a["y"][sel]
-    mean = np.column_stack([np.bincount(lab, weights=y[:, j], minlength=n_rec) for j in range(6)]) / cnt[:, None]
-    sq = np.column_stack([np.bincount(lab, weights=(y[:, j] - mean[lab, j]) ** 2, minlength=n_rec)
-                          for j in range(6)])
+    y = a["y"]
+    cuts = _cuts(labels_of, row_record.size)
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        lab = labels_of(lo, hi)
+        bins = lab + 1
+        c = np.bincount(bins, minlength=n_rec + 1)[1:].astype(float)
+        here = np.flatnonzero(c)
+        if here.size == 0:
+            continue
+        cnt[here] = c[here]
+        columns = [a["temp"][lo:hi], a["rate"][lo:hi]] + [y[lo:hi, j] for j in range(6)]
+        for j, x in enumerate(columns):
+            part = np.bincount(bins, weights=x, minlength=n_rec + 1)[1:]
+            sums[here, j] = part[here]
+            if j >= 2:  # scatter about the record's mean (complete: no record spans two chunks)
+                mean = np.zeros(n_rec + 1)
+                mean[here + 1] = part[here] / c[here]
+                dev = x - mean[bins]
+                sq[here, j - 2] = np.bincount(bins, weights=dev * dev, minlength=n_rec + 1)[1:][here]
+        rows = np.flatnonzero(lab >= 0)
+        lab_in = lab[rows]
+        uniq, first_at = np.unique(lab_in, return_index=True)
+        _, last_rev = np.unique(lab_in[::-1], return_index=True)
+        first[uniq] = lo + rows[first_at]
+        last[uniq] = lo + rows[::-1][last_rev]
+        temp_in = a["temp"][lo:hi][rows]
+        np.maximum.at(tmax, lab_in, temp_in)
+        np.minimum.at(tmin, lab_in, temp_in)
+
+    present = cnt > 0
+    labels = labels_of(0, row_record.size) if with_labels else np.zeros(0, dtype=np.int64)
+    if not present.all():
+        keep = np.flatnonzero(present)
+        if with_labels:
+            remap = np.full(n_rec + 1, -1, dtype=np.int64)
+            remap[keep] = np.arange(keep.size)
+            labels = remap[labels]
+        cnt, sums, sq, first, last = cnt[keep], sums[keep], sq[keep], first[keep], last[keep]
+        tmax, tmin, row_interval_s = tmax[keep], tmin[keep], row_interval_s[keep]
+        n_rec = int(keep.size)
+    temp = sums[:, 0] / np.maximum(cnt, 1)
+    rate = sums[:, 1] / np.maximum(cnt, 1)
+    mean = sums[:, 2:] / cnt[:, None]
+    orient = np.asarray(a["orientation"][first]).astype(np.int64)
+    run = np.asarray(a["run"][first]).astype(np.int64)
     with np.errstate(invalid="ignore", divide="ignore"):
         sem = np.sqrt(sq / (cnt[:, None] - 1) / cnt[:, None])
     sem[cnt <= 1] = np.nan
     return Records(
         row_record=labels, run=run, orientation=orient, rate_dps=rate, temp_c=temp, temp_span_c=tmax - tmin,
-        t_start_s=t_start, t_end_s=t_end, n_rows=cnt, row_interval_s=np.asarray(row_interval_s, dtype=float),
-        mean=mean, sem=sem, reference=reference_values(orient, rate), step=np.full(n_rec, -1, dtype=np.int64),
+        t_start_s=a["t"][first], t_end_s=a["t"][last], n_rows=cnt,
+        row_interval_s=np.asarray(row_interval_s, dtype=float), mean=mean, sem=sem,
+        reference=reference_values(orient, rate), step=np.full(n_rec, -1, dtype=np.int64),
     )
+
+
+def _cuts(labels_of: Callable[[int, int], np.ndarray], n: int) -> list[int]:
+    """Chunk bounds 0 = c0 < c1 < ... = n, about CHUNK_ROWS apart, none inside a record; [0, n] when a
+    record's rows are not one run of equal labels (then no cut is safe)."""
+    if n <= CHUNK_ROWS:
+        return [0, n]
+    # Records are one run each when the runs of labels (rows in no record skipped) are as many as the labels.
+    runs, prev, seen = 0, -1, 0
+    counts = np.zeros(0, dtype=np.int64)
+    for lo in range(0, n, CHUNK_ROWS):
+        lab = labels_of(lo, min(lo + CHUNK_ROWS, n))
+        lab = lab[lab >= 0]
+        if lab.size == 0:
+            continue
+        runs += int(np.count_nonzero(lab[1:] != lab[:-1])) + int(lab[0] != prev)
+        prev = int(lab[-1])
+        c = np.bincount(lab)
+        if c.size > counts.size:
+            counts = np.concatenate([counts, np.zeros(c.size - counts.size, dtype=np.int64)])
+        counts[:c.size] += c
+    seen = int(np.count_nonzero(counts))
+    if runs != seen:
+        return [0, n]
+    cuts = [0]
+    while cuts[-1] + CHUNK_ROWS < n:
+        hi = cuts[-1] + CHUNK_ROWS
+        before = labels_of(cuts[-1], hi)
+        inside = before[before >= 0]
+        last_label = int(inside[-1]) if inside.size else -1
+        # Cut at the first row of another record at or after hi.
+        width = 4096
+        while True:
+            ahead = labels_of(hi, min(hi + width, n))
+            other = np.flatnonzero((ahead >= 0) & (ahead != last_label))
+            if other.size or hi + width >= n:
+                break
+            width *= 4
+        if not other.size:
+            break
+        cuts.append(hi + int(other[0]))
+    cuts.append(n)
+    return cuts
 
 
 def _split_wide(ts: np.ndarray, new: np.ndarray, max_width: float, continuous_gap: float = 0.5,

@@ -89,7 +89,7 @@ def calibrate_steps(records: Records, steps: TemperatureSteps) -> dict[str, list
     """Six-position calibration of both triads at every temperature step."""
     out: dict[str, list[StepCalibration]] = {t: [] for t in TRIADS}
     for k in range(len(steps)):
-        sub = records.subset(records.step == k)
+        sub = records.subset(records.step == k, with_labels=False)
         for triad in TRIADS:
             out[triad].append(six_position(sub, triad, float(steps.temp_c[k])))
     return out

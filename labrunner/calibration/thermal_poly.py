@@ -300,9 +300,9 @@ def cv_order(records: Records, steps: TemperatureSteps, triad: str, max_order_: 
     for order in range(top + 1):
         total, weight = 0.0, 0.0
         for hold in interior:
-            test = records.subset(records.step == hold)
+            test = records.subset(records.step == hold, with_labels=False)
             if method == "joint":
-                model = fit_joint(records.subset(records.step != hold), triad, order, t_ref_c)
+                model = fit_joint(records.subset(records.step != hold, with_labels=False), triad, order, t_ref_c)
             else:
                 model = fit_two_stage([c for i, c in enumerate(per_step) if i != hold], order, t_ref_c)
             err = (record_prediction(model, test) - test.mean[:, sl]) / noise
