@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import logging
 import shutil
+import signal
 import sys
 import tempfile
 import time
@@ -70,7 +71,8 @@ class Campaign:
     records: list[np.ndarray]  # per synthesised record: (n, 7) float (accel g, gyro deg/s, temp C)
     record_chamber: np.ndarray  # (records, 2): chamber C at the record's start and end
     record_run: np.ndarray  # (records,) int
-    record_key: dict[tuple[str, float, float], int]  # (orientation, setpoint C, rate) -> record index
+    record_key: dict[tuple[str, float, int], int]  # (orientation, setpoint C, rate index) -> record index
+    rates: list[float]  # the rate schedule (a triangular one holds each rate twice: keyed by position)
     gaps: list[tuple[np.ndarray, np.ndarray, int, str]]  # before record k: (rows (m, 7), chamber (m,), run, orient)
     rate_hz: float
 
@@ -99,8 +101,8 @@ def synthesise(base_fraction: float, seed: int) -> Campaign:
     is_rec[1:] |= close
     edges = np.flatnonzero(np.diff(np.concatenate([[0], is_rec.astype(np.int8), [0]])))
     starts, stops = edges[::2], edges[1::2]
-    keys = [(o, temp, r) for i, o in enumerate(plan.orientations)
-            for temp in (sorted(temps)[::-1] if i % 2 else sorted(temps)) for r in rates]
+    keys = [(o, temp, j) for i, o in enumerate(plan.orientations)
+            for temp in (sorted(temps)[::-1] if i % 2 else sorted(temps)) for j in range(len(rates))]
     if len(starts) != len(keys):
         raise RuntimeError(f"synthesised campaign: {len(starts)} records found, {len(keys)} expected")
     records, gaps = [], []
@@ -111,7 +113,8 @@ def synthesise(base_fraction: float, seed: int) -> Campaign:
         gaps.append((values[prev:a].astype(np.float32), chamber[prev:a], int(run[a]), str(orient[a])))
         prev = b
     return Campaign(records=records, record_chamber=np.column_stack([chamber[starts], chamber[stops - 1]]),
-                    record_run=run[starts].astype(int), record_key={k: i for i, k in enumerate(keys)}, gaps=gaps,
+                    record_run=run[starts].astype(int), record_key={k: i for i, k in enumerate(keys)},
+                    rates=list(rates), gaps=gaps,
                     rate_hz=plan.sample_rate_hz)
 
 
@@ -132,11 +135,15 @@ def build_store(db: Path, campaign: Campaign, scale: float, procedure: Path) -> 
                              plan=plan, lease_token=new_token())
     t = 0.0
     samples = monitor_rows = 0
+    used: set[int] = set()
     for step in plan:
-        k = campaign.record_key.get((step.orientation, float(step.temperature_c), float(step.rate_dps)))
-        if k is None:
+        k = campaign.record_key.get((step.orientation, float(step.temperature_c), step.rate_index))
+        if k is None or campaign.rates[step.rate_index] != step.rate_dps:
             raise RuntimeError(f"{procedure}: step {step.index} ({step.orientation}, {step.temperature_c} C, "
                                f"{step.rate_dps} deg/s) is not in the synthesised paper campaign")
+        if k in used:
+            raise RuntimeError(f"{procedure}: step {step.index} repeats a record of the synthesised campaign")
+        used.add(k)
         rows, chamber, run, orient = campaign.gaps[k]
         for a in range(0, len(rows), poll_s):  # the ramp/soak before the step, one block per chamber poll
             part = rows[a:a + poll_s].astype(float)
@@ -252,6 +259,8 @@ def main() -> int:
     if unknown := sorted(set(commands) - set(COMMANDS)):
         ap.error(f"--commands: unknown {', '.join(unknown)} (from {', '.join(COMMANDS)})")
     logging.basicConfig(level=logging.WARNING)
+    # A terminated bench unwinds like an interrupted one: children and hog killed, stores deleted.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
 
     if args.workdir:
         args.workdir.mkdir(parents=True, exist_ok=True)
