@@ -72,8 +72,10 @@ RANGES: dict[str, Range] = {
     "soak.predict_window_s": Range(10.0, 86400.0, "s"),
     "soak.predict_horizon_s": Range(1.0, 86400.0, "s"),
     "soak.predict_tau_max_s": Range(10.0, 7 * 86400.0, "s"),
+    "soak.predict_tolerance_c": Range(0.01, 10.0, "C"),
     "ramp.c_per_min": Range(0.01, 10.0, "C/min"),
     "ramp.bin_c": Range(0.1, 20.0, "C"),
+    "ramp.end_hold_s": Range(0.0, 86400.0, "s"),
     "remount_c": TEMPERATURE_C,
     "remount_s": Range(0.0, 86400.0, "s"),
     "rates.list_dps": RATE_DPS,
@@ -151,9 +153,11 @@ class Soak(_Strict):
     sensor: Literal["imu", "chamber"] = "imu"
     poll_s: float = Field(30.0, gt=0)
     # criterion predictive (labrunner.runner.soak_predict): done when the fitted approach of the IMU
-    # temperature predicts less than tolerance_c of change over the horizon (default: one record_s)
+    # temperature predicts less than predict_tolerance_c (default tolerance_c) of change over the horizon
+    # (default: one record_s); fitted from the soak's start over at most the last predict_window_s
     criterion: Literal["spread", "predictive"] = "spread"
     predict_window_s: float = Field(600.0, gt=0)
+    predict_tolerance_c: float | None = Field(None, gt=0)
     predict_horizon_s: float | None = Field(None, gt=0)
     predict_model: Literal["single", "double"] = "single"
     predict_tau_max_s: float = Field(7200.0, gt=0)
@@ -276,6 +280,7 @@ class Ramp(_Strict):
     SECTION: ClassVar[str] = "ramp"
     c_per_min: float = Field(gt=0)
     bin_c: float = Field(1.0, gt=0)
+    end_hold_s: float = Field(0.0, ge=0)  # the schedule repeated at the far end while the IMU catches up
 
 
 class Fit(_Strict):
@@ -390,7 +395,8 @@ class Procedure:
         for oi, (name, _) in enumerate(self.orientations()):
             if ramp is not None:  # one slow ramp per orientation; temperature_index is the bin
                 temps = self.temperatures_for(oi)
-                for pt in ramp_points(temps[0], temps[-1], ramp.c_per_min, ramp.bin_c, self._rate_durations_s()):
+                for pt in ramp_points(temps[0], temps[-1], ramp.c_per_min, ramp.bin_c, self._rate_durations_s(),
+                                      ramp.end_hold_s):
                     out.append(Step(len(out), name, pt.temperature_c, rates[pt.rate_index], oi, pt.bin_index,
                                     pt.rate_index))
                 continue
@@ -470,8 +476,9 @@ class Procedure:
             return ramp + s.stable_window_s
         if s.criterion == "predictive":  # until the drift over the horizon, not the window's spread, is tolerable
             shrink = 1.0 - math.exp(-(s.predict_horizon_s or self.model.record_s) / imu_lag_s)
-            follow = imu_lag_s * math.log(max(max(abs(step_c), s.tolerance_c) * shrink / s.tolerance_c, 1.0))
-            return ramp + max(follow, s.predict_window_s)
+            tol = s.predict_tolerance_c or s.tolerance_c
+            follow = imu_lag_s * math.log(max(max(abs(step_c), tol) * shrink / tol, 1.0))
+            return ramp + max(follow, 8 * s.poll_s)  # fitted from the soak's start: 8 polls at least
         follow = imu_lag_s * math.log(max(s.stable_window_s * max(abs(step_c), s.tolerance_c)
                                           / (imu_lag_s * s.tolerance_c), 1.0))
         return ramp + max(follow, s.stable_window_s)

@@ -5,10 +5,12 @@ A soak is stable when the readings of the last `stable_window_s` all hold: the c
 `tolerance_c` too (the IMU lags the air, so a settled chamber alone does not mean a settled IMU).
 
 With `criterion: predictive` the IMU part is judged by extrapolation instead
-(`labrunner.runner.soak_predict`): once the soak has lasted `predict_window_s` with the chamber within
-tolerance over it, the fitted approach of the IMU temperature must predict less than `tolerance_c` of
-change over the horizon (`predict_horizon_s`, by default the procedure's `record_s`). A fit that gives no
-prediction switches that soak to the spread criterion for good (`SoakWindow.fallback`).
+(`labrunner.runner.soak_predict`): from the soak's start (once it holds `MIN_READINGS` polls), over
+at most the last `predict_window_s`, with the chamber within `tolerance_c` over the readings fitted,
+the fitted approach of the IMU temperature must predict less than `predict_tolerance_c` (default
+`tolerance_c`) of change over the horizon (`predict_horizon_s`, by default the procedure's `record_s`),
+confidence bound included. A fit that gives no prediction switches that soak to the spread criterion
+for good (`SoakWindow.fallback`).
 """
 
 from __future__ import annotations
@@ -17,15 +19,18 @@ import logging
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 from labrunner.procedure import Soak
-from labrunner.runner.soak_predict import ApproachFit, NoFit, fit_approach
+from labrunner.runner.soak_predict import MIN_READINGS, ApproachFit, NoFit, fit_approach
 
 log = logging.getLogger(__name__)
 
 _EPS_S = 1e-6  # polls land on whole seconds; do not miss a window by rounding
+# A predictive soak ends with the chamber within this many tolerances of its setpoint (its controller's
+# overshoot, settling; the rest of that excursion is in the predicted drift's bound).
+_CHAMBER_BAND = 5.0
 
 
 @dataclass(frozen=True)
@@ -100,6 +105,8 @@ class SoakWindow:
         # The predictive criterion's horizon: the soak's own, else the caller's (a record), else a window.
         self.horizon_s = soak.predict_horizon_s or horizon_s or soak.stable_window_s
         self.predictive = soak.criterion == "predictive"
+        # What the predicted drift over the horizon is held to; the chamber keeps tolerance_c.
+        self.predict_tolerance_c = soak.predict_tolerance_c or soak.tolerance_c
         self.prediction: ApproachFit | None = None  # the newest fit (predictive criterion)
         self.fallback: str | None = None  # why this soak fell back to the spread criterion
         self._keep_s = max(soak.stable_window_s, soak.predict_window_s if self.predictive else 0.0)
@@ -132,20 +139,31 @@ class SoakWindow:
 
     def _predicted_stable(self) -> bool:
         s = self.soak
-        if self._first_t is None or self.covered_s() < s.predict_window_s - _EPS_S:
+        if self._first_t is None:
             return False
+        # From the soak's start (the chamber reached its tolerance), over at most the last
+        # predict_window_s: a fit over a few polls is already a prediction, its (profile) bound wide
+        # while the window is short against tau. The chamber's controller overshoots and takes minutes
+        # to settle back within a tenth of a degree; the IMU, lagging minutes behind, follows that
+        # small excursion smoothly, and what it still has to follow is bounded below (chamber term).
         window = self._last(s.predict_window_s)
-        if any(abs(r.chamber_c - self.setpoint_c) > s.tolerance_c for r in window):
-            return False  # the IMU's forcing still moves: no single approach to fit
+        if len(window) < MIN_READINGS:
+            return False
         fit = fit_approach([r.t_s for r in window], [r.imu_c for r in window], self.horizon_s,
                            s.predict_tau_max_s, s.predict_model)
         if isinstance(fit, NoFit):
+            if window[-1].t_s - window[0].t_s < s.predict_window_s - s.poll_s - _EPS_S:
+                self.prediction = None  # a short window may not resolve the approach yet: wait for more
+                return False
             self.fallback = fit.reason
             self.prediction = None
             log.info("predictive soak at %s C falls back to the spread criterion: %s", self.setpoint_c, fit.reason)
             return self._spread_stable()
+        # The air still off its setpoint by d moves the IMU by up to d (1 - exp(-horizon / tau)) more.
+        off = abs(window[-1].chamber_c - self.setpoint_c)
+        fit = replace(fit, chamber_drift_c=off * -math.expm1(-self.horizon_s / fit.tau_s))
         self.prediction = fit
-        return fit.drift_bound_c <= s.tolerance_c
+        return off <= s.tolerance_c * _CHAMBER_BAND and fit.drift_bound_c <= self.predict_tolerance_c
 
     def _spread_stable(self) -> bool:
         """Stable once the soak has lasted a window and every reading of the last window holds."""

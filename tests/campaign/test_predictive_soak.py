@@ -60,15 +60,18 @@ def drift_over_record(plant, t_end: float, record_s: float = RECORD_S) -> float:
 def test_predictive_ends_earlier_than_spread_and_the_record_stays_within_tolerance():
     t_strict, _ = soak_end(STRICT, first_order)
     t_pred, w = soak_end(PREDICTIVE, first_order)
-    # Spread <= 0.1 C over 600 s: 20 C * exp(-t/tau) * (e - 1) <= 0.1 -> t = 3504 s; the prediction needs the
-    # change over one 60 s record <= 0.1 C: 20 C * exp(-t/tau) * (1 - exp(-0.1)) <= 0.1 -> t = 1768 s.
+    # Spread <= 0.1 C over 600 s: 20 C * exp(-t/tau) * (e - 1) <= 0.1 -> t = 3504 s; the prediction bounds the
+    # change over one 60 s record by the current rate times 60 s (no decelerating approach changes more):
+    # 20 C * exp(-t/tau) * 60 / tau <= 0.1 -> t = 1797 s.
     assert t_strict == pytest.approx(3510, abs=POLL)
-    assert t_pred == pytest.approx(1770, abs=POLL)
+    assert t_pred == pytest.approx(1800, abs=POLL)
     assert w.fallback is None and isinstance(w.prediction, ApproachFit)
     assert w.prediction.tau_s == pytest.approx(TAU, rel=1e-3)
     assert w.prediction.span_s == pytest.approx(600.0)
     assert drift_over_record(first_order, t_pred) <= PREDICTIVE.tolerance_c
-    assert w.prediction.drift_c == pytest.approx(drift_over_record(first_order, t_pred), rel=1e-3)
+    rate = (SETPOINT - START) * math.exp(-t_pred / TAU) / TAU
+    assert w.prediction.drift_c == pytest.approx(rate * RECORD_S, rel=1e-3)
+    assert w.prediction.drift_c >= drift_over_record(first_order, t_pred)
 
 
 @pytest.mark.parametrize("horizon_s", [60.0, 600.0, 2600.0])
@@ -77,8 +80,10 @@ def test_the_horizon_is_the_duration_the_temperature_must_hold(horizon_s):
     t_pred, w = soak_end(soak, first_order, horizon_s=RECORD_S)  # the soak's own horizon wins over the record
     assert w.horizon_s == horizon_s
     assert drift_over_record(first_order, t_pred, horizon_s) <= soak.tolerance_c
-    # Not needlessly late either: one poll earlier the drift over the horizon was still too large.
-    assert drift_over_record(first_order, t_pred - POLL, horizon_s) > soak.tolerance_c * 0.9
+    # Not needlessly late either: one poll earlier the drift over the horizon was still too large, for the
+    # bound (each component's rate times the horizon, up to its amplitude, against the exponential's own).
+    conservative = min(horizon_s / TAU, 1.0) / -math.expm1(-horizon_s / TAU)
+    assert drift_over_record(first_order, t_pred - POLL, horizon_s) * conservative > soak.tolerance_c * 0.9
 
 
 def test_two_time_constants_after_power_on_are_fitted_by_the_double_model():
@@ -134,8 +139,19 @@ def test_a_fit_without_an_approach_falls_back_to_the_spread_criterion():
 def test_the_chamber_off_its_setpoint_is_not_stable_whatever_the_fit():
     w = SoakWindow(PREDICTIVE, SETPOINT, horizon_s=RECORD_S)
     for k in range(21):
-        w.add(k * POLL, SETPOINT + (0.5 if k == 10 else 0.0), SETPOINT)
+        w.add(k * POLL, SETPOINT + (0.6 if k == 20 else 0.0), SETPOINT)
     assert not w.stable() and w.fallback is None
+
+
+def test_the_chamber_back_near_its_setpoint_adds_its_offset_to_the_bound():
+    # The controller's overshoot: a past excursion the IMU shows no sign of does not hold the soak, the
+    # offset still there is in the bound (it moves the IMU by up to offset * (1 - exp(-horizon / tau))).
+    w = SoakWindow(PREDICTIVE, SETPOINT, horizon_s=RECORD_S)
+    for k in range(21):
+        w.add(k * POLL, SETPOINT + (0.4 if k == 10 else 0.05 if k == 20 else 0.0), first_order(1800 + k * POLL))
+    assert w.stable() and w.prediction is not None
+    assert w.prediction.chamber_drift_c == pytest.approx(0.05 * -math.expm1(-RECORD_S / w.prediction.tau_s))
+    assert w.prediction.drift_bound_c <= PREDICTIVE.tolerance_c
 
 
 def test_fit_approach_reports_why_it_gives_no_prediction():
