@@ -40,9 +40,11 @@ class RampPoint:
 
 
 def ramp_points(start_c: float, stop_c: float, c_per_min: float, bin_c: float,
-                step_durations_s: Sequence[float]) -> list[RampPoint]:
+                step_durations_s: Sequence[float], end_hold_s: float = 0.0) -> list[RampPoint]:
     """The steps of one ramp from `start_c` to `stop_c`: the rate schedule (one duration per rate: settle,
-    spin-up and record) repeated while the setpoint moves at `c_per_min`, the last step at `stop_c`."""
+    spin-up and record) repeated while the setpoint moves at `c_per_min`, the last step at `stop_c`; then,
+    with `end_hold_s`, the schedule repeated at `stop_c` for that long (whole passes) while the IMU catches up
+    with the far end, so that an orientation ramped up and one ramped down cover the same temperatures."""
     if not step_durations_s:
         return []
     span = abs(stop_c - start_c)
@@ -55,9 +57,17 @@ def ramp_points(start_c: float, stop_c: float, c_per_min: float, bin_c: float,
         for ri, d in enumerate(step_durations_s):
             moved = c_per_min * elapsed / 60.0
             if moved > span + 1e-9:
-                return out
+                return out + _hold(out[-1], end_hold_s, step_durations_s)
             out.append(RampPoint(round(start_c + sign * moved, 3), int(math.floor(moved / bin_c + 1e-9)), ri))
             elapsed += d
+
+
+def _hold(last: RampPoint, hold_s: float, step_durations_s: Sequence[float]) -> list[RampPoint]:
+    """Whole passes of the schedule at the ramp's last setpoint and bin, for at least `hold_s`."""
+    per_pass = float(sum(step_durations_s))
+    passes = int(math.ceil(hold_s / per_pass - 1e-9)) if hold_s > 0 and per_pass > 0 else 0
+    return [RampPoint(last.temperature_c, last.bin_index, ri) for _ in range(passes)
+            for ri in range(len(step_durations_s))]
 
 
 def ramp_duration_s(start_c: float, stop_c: float, c_per_min: float) -> float:

@@ -93,3 +93,26 @@ def test_a_shortened_ramp_campaign_dry_run_fits_with_the_lag_and_compensates_as_
         temp = frame.imu_temp_c.to_numpy()
     want = compensate(model.model, frame[OUT].to_numpy(), temp).values
     assert np.allclose(out[[c + "_comp" for c in OUT]].to_numpy(), want, atol=1e-12)
+
+
+def test_the_end_hold_repeats_the_schedule_at_the_far_end_in_its_last_bin():
+    from labrunner.ramp_plan import ramp_points
+
+    durations = [12.5, 12.0, 12.5]
+    plain = ramp_points(15.0, 25.0, 0.5, 1.0, durations)
+    held = ramp_points(15.0, 25.0, 0.5, 1.0, durations, end_hold_s=100.0)
+    assert held[:len(plain)] == plain
+    extra = held[len(plain):]
+    assert len(extra) == 3 * 3  # whole passes of 37 s covering 100 s
+    assert {p.temperature_c for p in extra} == {plain[-1].temperature_c}
+    assert {p.bin_index for p in extra} == {plain[-1].bin_index}
+    assert [p.rate_index for p in extra] == [0, 1, 2] * 3
+
+
+def test_the_shipped_ramp_campaign_holds_at_the_ends_within_the_lab_time_target():
+    proc = parse_procedure((ROOT / "procedures" / "ramp_campaign.yaml").read_text(), "ramp_campaign.yaml")
+    assert proc.model.ramp is not None and proc.model.ramp.end_hold_s > 0
+    assert proc.estimated_duration_s() <= 1.5 * 86400
+    bad = RAMP.replace("bin_c: 1.0}", "bin_c: 1.0, end_hold_s: -5}")
+    with pytest.raises(Exception, match="ramp.end_hold_s"):
+        parse_procedure(bad, "ramp.yaml")
