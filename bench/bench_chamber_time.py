@@ -18,8 +18,12 @@ true specific force / angular rate (per sample the sensor noise would hide every
 (`labrunner.calibration.px4_reference`, offsets only, one cubic per orientation from a temperature
 sweep) is fitted on the ramp campaign's static rows: the reference row.
 
-A --workdir keeps the stores; a campaign whose store holds a finished run is not run again.
-Prints lab time, samples and held-out errors, and each campaign's ratios to the strict one.
+A --workdir keeps the stores; a campaign whose store holds a finished run is not run again (its
+models are fitted again from the store when they are missing). Without one, the stores go to a
+temporary directory removed at the end. Prints lab time, samples and held-out errors, each campaign's
+ratios to the strict one, then issue 16's targets, one line each with the measured value and its ratio
+to the target (`bench.common.report`: ratio <= 1 is met). Exits 0 whether or not a target is met;
+non-zero only when something crashed (a campaign run that failed).
 """
 
 from __future__ import annotations
@@ -35,6 +39,10 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.common import load_line, report  # noqa: E402
 
 IMU_EFFECTS = {
     "thermal_lag": {"tau_s": 240.0, "channels": ["accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z"]},
@@ -112,8 +120,19 @@ def run_campaign(name: str, text: str, work: Path, sim: Path, seed: int) -> Run:
     with Store.open_existing(db) as s:
         info = s.campaign(1)
         steps = s.steps_frame(1)
-        return Run(name, db, fit_dir, (info.clock_last - info.clock_t0) / 3600.0,
-                   int(steps.n_samples.sum()), wall)
+        run = Run(name, db, fit_dir, (info.clock_last - info.clock_t0) / 3600.0, int(steps.n_samples.sum()), wall)
+        if name in CAMPAIGNS and not (fit_dir / "polynomial.json").exists():
+            _refit(s, fit_dir)
+        return run
+
+
+def _refit(store, fit_dir: Path) -> None:
+    """The end-of-run fit again, as the stored procedure says (a kept store whose models are gone)."""
+    from labrunner.campaign_fit import fit_and_store
+    from labrunner.procedure import parse_procedure
+
+    proc = parse_procedure(store.campaign(1).procedure_text, "stored procedure", stored=True)
+    fit_and_store(store, 1, proc.model.fit, fit_dir)
 
 
 def _rms(err: np.ndarray) -> float:
@@ -157,18 +176,33 @@ def heldout_errors(model_path: Path | None, px4, frame, labels: np.ndarray) -> t
     return _rms(mean[:, :3]), _rms(mean[:, 3:])
 
 
-def main() -> None:
+def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--only", default="strict,fast,ramp")
     args = ap.parse_args()
+    if args.workdir is not None:
+        args.workdir.mkdir(parents=True, exist_ok=True)
+        return bench(args, args.workdir)
+    with tempfile.TemporaryDirectory(prefix="labrunner-chamber-time-") as tmp:
+        return bench(args, Path(tmp))
+
+
+# Issue 16's targets: lab time, and held-out error against the strict campaign's (each column).
+FAST_MAX_H = 4 * 24.0
+FAST_ERROR_RATIO = 1.05
+RAMP_MAX_H = 1.5 * 24.0
+RAMP_ERROR_RATIO = 1.10
+COLUMNS = ("soaks accel", "soaks gyro", "heating accel", "heating gyro")
+UNITS = ("mg", "deg/s", "mg", "deg/s")
+
+
+def bench(args: argparse.Namespace, work: Path) -> int:
     from labrunner.calibration.px4_reference import fit_px4
     from labrunner.calibration.records import frame_arrays
     from labrunner.data_source import load_campaign_data
 
-    work = args.workdir or Path(tempfile.mkdtemp(prefix="labrunner-chamber-time-"))
-    work.mkdir(parents=True, exist_ok=True)
     sim = work / "sim.json"
     sim.write_text(json.dumps({"seed": args.seed, "imu_model": {"effects": IMU_EFFECTS}}))
     names = [n for n in args.only.split(",") if n]
@@ -184,7 +218,8 @@ def main() -> None:
         a = frame_arrays(f)
         px4 = fit_px4(a, np.ones(len(f), bool))
 
-    print(f"work: {work}  (seed {args.seed}; IMU effects: {', '.join(IMU_EFFECTS)})")
+    print(f"work: {work if args.workdir else '(temporary)'}  (seed {args.seed}; IMU effects: "
+          f"{', '.join(IMU_EFFECTS)}); {load_line()}")
     head = f"{'campaign':<12}{'lab h':>8}{'lab days':>9}{'samples':>13}{'wall s':>8}"
     cols = "".join(f"{h + ' ' + t:>22}" for h in ("soaks", "heating") for t in ("accel mg", "gyro dps"))
     print(head + cols)
@@ -207,16 +242,31 @@ def main() -> None:
         e = errs_for(r.fit_dir / "polynomial.json")
         results[r.name] = (r, e)
         row(r.name, r.lab_h, r.samples, r.wall_s, e)
-    if px4 is not None:
-        row("px4 (ramp)", None, None, None, errs_for(None, px4))
-    if "strict" in results:
-        base = results["strict"]
+    px4_errs = errs_for(None, px4) if px4 is not None else None
+    if px4_errs is not None:
+        row("px4 (ramp)", None, None, None, px4_errs)
+    base = results.get("strict")
+    if base is not None:
         for name, (r, e) in results.items():
             if name == "strict":
                 continue
             ratios = ", ".join(f"{v / b:.3f}" for v, b in zip(e, base[1], strict=True))
             print(f"{name} / strict: lab time {r.lab_h / base[0].lab_h:.3f}, held-out error ratios {ratios}")
 
+    print("targets (issue 16):")
+    for name, max_h, max_ratio in (("fast", FAST_MAX_H, FAST_ERROR_RATIO), ("ramp", RAMP_MAX_H, RAMP_ERROR_RATIO)):
+        if name not in results:
+            continue
+        r, e = results[name]
+        report(f"{name} lab time", r.lab_h, max_h, "lab h")
+        if base is not None:
+            for col, v, b in zip(COLUMNS, e, base[1], strict=True):
+                report(f"{name} {col} error / strict", v / b, max_ratio, "x")
+        if px4_errs is not None:
+            for col, unit, v, p in zip(COLUMNS, UNITS, e, px4_errs, strict=True):
+                report(f"{name} {col} error (< px4)", v, p, unit)
+    return 0
+
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
