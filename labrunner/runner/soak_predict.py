@@ -120,7 +120,7 @@ def _drift(p: np.ndarray, horizon_s: float) -> float:
     when the fitted time constant is too fast (the air's own settling early in the window bends the
     readings: on the simulated lab the fitted tau is ~15 % short of the case's)."""
     amps, taus = p[1::2], p[2::2]
-    return max(abs(float(g[1:] @ amps)) for g in _gains(taus, horizon_s))
+    return max(abs(float(g[1:] @ amps)) for g in _gains([float(v) for v in taus], horizon_s))
 
 
 def _search_single(t: np.ndarray, y: np.ndarray, lo: float, hi: float) -> float:
