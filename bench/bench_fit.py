@@ -20,6 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.common import load_line, report  # noqa: E402
 from labrunner.calibration import FitOptions, compensate  # noqa: E402
 from labrunner.calibration.evaluation import evaluate  # noqa: E402
 from labrunner.calibration.fit import fit_models  # noqa: E402
@@ -38,6 +39,7 @@ def main() -> int:
                     help="synthesize an IMU whose temperature dependence is not cubic (a tanh step at 10 C)")
     args = ap.parse_args()
 
+    print(load_line())
     t0 = time.perf_counter()
     if args.data:
         from labrunner.data_source import load_campaign_data
@@ -82,6 +84,7 @@ def main() -> int:
     for v, m in models.rbf.items():
         print(f"  rbf {v}: centres per network {[n.n_centres for n in m.networks]}")
     print(f"TOTAL fit time (records + fit, excluding data generation): {total:.1f} s  [target < 60 s]")
+    report("records + fits", total, 60.0, "s")
     t = time.perf_counter()
     gains = check_models(dict(models.compensators()), models.polynomial, records, args.seed)
     print(f"gain check of {len(gains)} models: {time.perf_counter() - t:.2f} s")
@@ -97,6 +100,7 @@ def main() -> int:
         dt = time.perf_counter() - t
         print(f"compensation {name}: {len(y) / dt / 1e6:.2f} M samples/s ({len(y):,} samples in {dt:.1f} s)  "
               "[target > 1 M/s]")
+        report(f"compensation {name}", len(y) / dt / 1e6, 1.0, "M samples/s", lower_is_better=False)
 
     if args.evaluate:
         t = time.perf_counter()
@@ -104,6 +108,8 @@ def main() -> int:
                       lambda tr: fit_models(tr, opt).compensators(), seed=args.seed)
         print(f"evaluation ({len(ev)} splits, refits and the px4 reference included): "
               f"{time.perf_counter() - t:.1f} s")
+        # Issue 15, target 1: the end-of-run fit's share of the 45 s dry run (evaluation included).
+        report("records + fits + evaluation", total + time.perf_counter() - t, 10.0, "s")
         for split in ev:
             if split.skipped:
                 continue
@@ -113,6 +119,7 @@ def main() -> int:
                 print(f"    {name:22s} " + " ".join(f"{v:9.3g}" for v in st.rms) + " | "
                       + " ".join(f"{v:9.3g}" for v in split.records[name].rms) + " | "
                       + " ".join(f"{v:7.2f}" for v in imp))
+    print(load_line())
     return 0
 
 

@@ -59,11 +59,18 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
             raise CampaignDataError(label, "file not found")
         if path.is_dir():
             raise CampaignDataError(label, "is a directory; expected a campaign CSV file")
-        raw = _read_typed(path, label)
-        if raw is None:
-            raw = _read_text(path, label)
-    else:
-        raw = source.reset_index(drop=True)
+        typed = _read_typed(path, label)
+        if typed is not None:
+            try:
+                return _validate(typed, label, True)
+            except CampaignDataError:
+                pass  # the text reading says it as the file has it (a cell's own text, its line)
+        return _validate(_read_text(path, label), label, True)
+    return _validate(source.reset_index(drop=True), label, False)
+
+
+def _validate(raw: pd.DataFrame, label: str, from_csv: bool) -> pd.DataFrame:
+    """The campaign columns of `raw`, checked and typed; `CampaignDataError` names the first bad cell."""
     missing = [c for c in COLUMNS if c not in raw.columns]
     if missing:
         raise CampaignDataError(label, "missing column(s) " + ", ".join(missing) + "; the header must name "
@@ -119,10 +126,9 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
     t = out["t_s"]
     run = out["run"]
     assert isinstance(t, np.ndarray) and isinstance(run, np.ndarray)
-    same_run = run[1:] == run[:-1]
-    back = np.flatnonzero(same_run & (np.diff(t) < 0))
-    if back.size:
-        i = int(back[0]) + 1
+    back = _backwards(t, run)
+    if back is not None:
+        i = back
         raise CampaignDataError(label, f"time goes backwards within run {run[i]} ({t[i - 1]} then {t[i]})",
                                 _line(i, from_csv), "t_s")
     columns = list(COLUMNS)
@@ -130,6 +136,17 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
         out[POWER_ON] = _power_on(raw[POWER_ON], label, from_csv)
         columns.append(POWER_ON)
     return pd.DataFrame({c: out[c] for c in columns}, copy=False)
+
+
+def _backwards(t: np.ndarray, run: np.ndarray, chunk: int = 1 << 20) -> int | None:
+    """The first row whose time is before its predecessor's in the same run, or None (in chunks: no
+    full-length temporaries)."""
+    for lo in range(1, t.size, chunk):
+        hi = min(lo + chunk, t.size)
+        bad = np.flatnonzero((run[lo:hi] == run[lo - 1:hi - 1]) & (t[lo:hi] < t[lo - 1:hi - 1]))
+        if bad.size:
+            return lo + int(bad[0])
+    return None
 
 
 def _categories(series: pd.Series) -> tuple[np.ndarray, list[str]]:

@@ -76,5 +76,7 @@ def mark_power_ons(frame: pd.DataFrame, events: pd.DataFrame) -> pd.DataFrame:
         first[change] = True
     else:
         first = ~frame["run"].duplicated().to_numpy()
-    mark = first & np.isin(run, np.fromiter(runs, dtype=np.int64, count=len(runs)))
-    return frame.assign(power_on=mark.astype(np.int8))
+    at = np.flatnonzero(first)
+    mark = np.zeros(run.size, dtype=np.int8)
+    mark[at[np.isin(run[at], np.fromiter(runs, dtype=np.int64, count=len(runs)))]] = 1
+    return frame.assign(power_on=mark)

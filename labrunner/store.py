@@ -1033,11 +1033,12 @@ class Store:
             return int(conn.execute(q).scalar_one())
 
     def samples_frame(self, campaign_id: int, include_monitor: bool = False, with_steps: bool = False,
-                      remount_c: float | None = None) -> pd.DataFrame:
+                      remount_c: float | None = None, categorical: bool = False) -> pd.DataFrame:
         """All samples in the campaign CSV columns (records; with monitor rows if asked), time-ordered.
 
-        Orientation is categorical (the six orientations first, then any other label a block holds,
-        for the validation to name), `run` int64, the rest float64.
+        `run` is int64, the numbers float64, orientation text; with `categorical` (what `campaign_data`
+        reads for the analyses) orientation is categorical: the six orientations first, then any other
+        label a block holds, for the validation to name; one byte a row instead of an object.
 
         `with_steps` adds, per row, `kind` (record or monitor), the sequencer's `state`, the
         `step_idx` of its step, the chamber `setpoint_c` and the commanded table rate `rate_cmd_dps`
@@ -1078,7 +1079,7 @@ class Store:
                 kind[sl] = b.kind
             at += n
         orientation: Any = pd.Categorical.from_codes(codes[:at], categories=labels)
-        if with_steps:  # the diagnosis' frame keeps its text labels
+        if not categorical:
             orientation = np.asarray(labels, dtype=object)[codes[:at]]
         data: dict[str, Any] = {c: (run[:at] if c == "run" else orientation if c == "orientation" else cols[c][:at])
                                 for c in COLUMNS}
@@ -1134,7 +1135,7 @@ class Store:
 
         cid = self.resolve(campaign_id)
         info = self.campaign(cid)
-        frame = self.samples_frame(cid, include_monitor=include_monitor)
+        frame = self.samples_frame(cid, include_monitor=include_monitor, categorical=True)
         if frame.empty:
             raise UserError(f"{self.path}: campaign {cid} has no recorded samples yet")
         frame = read_campaign(frame, name=f"{self.path} campaign {cid}")

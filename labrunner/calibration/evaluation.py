@@ -156,22 +156,32 @@ def _static_check(values: np.ndarray, ref: np.ndarray, static_rows: np.ndarray, 
 Scored = PolyModel | RbfModel | Px4Reference
 
 
-def _apply(model: Scored | None, a: dict[str, np.ndarray], rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Compensated outputs of the given rows and their extrapolation flags (None: the raw data)."""
-    y, temp = a["y"][rows], a["temp"][rows]
+def _take(a: dict[str, Any], rows: np.ndarray) -> dict[str, np.ndarray]:
+    """The campaign arrays of the given rows (a mask or indices), taken once for every model scored."""
+    idx = np.flatnonzero(rows) if rows.dtype == bool else rows
+    return {k: a[k][idx] for k in ("y", "temp", "orientation", "rate", "run")}
+
+
+def _apply(model: Scored | None, a: dict[str, Any], rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Compensated outputs of the given rows (all of `a`'s: None) and their extrapolation flags (model
+    None: the raw data)."""
+    if rows is not None:
+        a = _take(a, rows)
+    y, temp = a["y"], a["temp"]
     if model is None:
         return y, np.zeros(y.shape[0], dtype=bool)
     if isinstance(model, Px4Reference):
-        return model.compensate_rows(y, temp, a["orientation"][rows]), np.zeros(y.shape[0], dtype=bool)
+        return model.compensate_rows(y, temp, a["orientation"]), np.zeros(y.shape[0], dtype=bool)
     comp = compensate(model, y, temp)
     return comp.values, comp.extrapolated
 
 
-def _run_offsets(model: Scored | None, a: dict[str, np.ndarray], rows: np.ndarray) -> dict[int, np.ndarray]:
-    """Mean error (6,) of a model on the training rows of each run: its offset at that power-on."""
-    values, _ = _apply(model, a, rows)
-    err = values - reference_values(a["orientation"][rows], a["rate"][rows])
-    run = a["run"][rows]
+def _run_offsets(model: Scored | None, sub: dict[str, np.ndarray]) -> dict[int, np.ndarray]:
+    """Mean error (6,) of a model on the training rows `sub` (`_take`) of each run: its offset at that
+    power-on."""
+    values, _ = _apply(model, sub)
+    err = values - reference_values(sub["orientation"], sub["rate"])
+    run = sub["run"]
     return {int(r): err[run == r].mean(axis=0) for r in np.unique(run)}
 
 
@@ -179,20 +189,22 @@ def score(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.ndarr
           result: SplitResult, offset_rows: np.ndarray | None = None) -> None:
     """Fill `result` with the errors of raw data and every model on the given rows. With `offset_rows`
     (training rows), each model's mean error per run over them is removed from its errors in that run."""
-    ref = reference_values(a["orientation"][rows], a["rate"][rows])
+    sub = _take(a, rows)
+    offset_sub = _take(a, offset_rows) if offset_rows is not None else {}
+    ref = reference_values(sub["orientation"], sub["rate"])
     lab = labels[rows]
-    static = np.abs(a["rate"][rows]) < STATIC_RATE_DPS
+    static = np.abs(sub["rate"]) < STATIC_RATE_DPS
     uniq, inv = np.unique(lab, return_inverse=True)
     cnt = np.bincount(inv, minlength=uniq.size).astype(float)
     result.n_test_rows = int(rows.sum()) if rows.dtype == bool else int(rows.size)
-    run = a["run"][rows]
+    run = sub["run"]
     for name, model in {"raw": None, **models}.items():
-        values, extrap = _apply(model, a, rows)
+        values, extrap = _apply(model, sub)
         if name != "raw":
             result.extrapolated_fraction[name] = float(extrap.mean()) if extrap.size else 0.0
         err = values - ref
         if offset_rows is not None:
-            for r, off in _run_offsets(model, a, offset_rows).items():
+            for r, off in _run_offsets(model, offset_sub).items():
                 err[run == r] -= off
         result.samples[name] = ErrorStats.of(err)
         rec = np.column_stack([np.bincount(inv, weights=err[:, j], minlength=uniq.size) for j in range(6)])
@@ -322,7 +334,8 @@ def ins_test(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.nd
         result.ins_skipped = "no 60 s window of contiguous static held-out rows (records are shorter)"
         return
     rows_w = win.ravel()
-    outputs = {name: _apply(model, a, rows_w)[0] for name, model in {"raw": None, **models}.items()}
+    sub = _take(a, rows_w)
+    outputs = {name: _apply(model, sub)[0] for name, model in {"raw": None, **models}.items()}
     result.ins = ins_errors(a, win, outputs)
 
 
