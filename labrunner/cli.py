@@ -16,15 +16,17 @@ from labrunner import __version__
 from labrunner.errors import UserError
 from labrunner.logs import LEVELS, configure
 
-# Modules with `register(subparsers)`; each sets `func(args) -> int` on its parser.
+# Modules with `register(subparsers)`; each sets `func(args) -> int` on its parser. They import argparse-level
+# modules only; each handler imports what its command needs when it runs, so `labrunner --help`, `status` or
+# `list` do not load scipy, pandas, matplotlib or the sims (tests/test_startup_imports.py keeps it so).
 COMMAND_MODULES = (
     "labrunner.commands.campaign",  # run, resume, status, abort, export
     "labrunner.commands.listing",  # list
     "labrunner.commands.sim",  # sim serve
     "labrunner.commands.check",  # check
-    "labrunner.calibration.command",  # fit
+    "labrunner.commands.fit",  # fit (labrunner.calibration.command runs it)
     "labrunner.commands.compensate",  # compensate
-    "labrunner.discrepancy.command",  # diagnose
+    "labrunner.commands.diagnose",  # diagnose (labrunner.discrepancy.command runs it)
     "labrunner.commands.report",  # report
 )
 

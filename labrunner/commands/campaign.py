@@ -9,11 +9,14 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from labrunner import api
 from labrunner.commands.progress import ProgressBar, clock_text
 from labrunner.commands.types import count, interval, seconds
 from labrunner.store_address import StoreAddress, store_arg
+
+if TYPE_CHECKING:  # the handlers import it: building the parser must not load the sequencer, store and sims
+    from labrunner import api
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -164,6 +167,8 @@ def _execute(session: api.Session, quiet: bool, db: StoreAddress) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from labrunner import api
+
     with api.start_run(args.procedure, db=args.db, lab="sim" if args.sim else args.lab, seed=args.seed,
                        faults=args.faults, sim_config=args.sim_config, fit_out=args.fit_out,
                        auto_resume=not args.no_auto_resume, force=args.force) as session:
@@ -174,6 +179,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
+    from labrunner import api
+
     with api.start_resume(args.db, campaign=args.campaign, lab=args.lab, fit_out=args.fit_out,
                           force=args.force, take_over=args.take_over) as session:
         if session.lease_note:
@@ -235,6 +242,8 @@ def _celsius(value: float | None) -> str:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
+    from labrunner import api
+
     s = api.status(args.db, campaign=args.campaign, events=args.events)
     if not args.watch:
         print(status_text(s))
@@ -256,6 +265,8 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_abort(args: argparse.Namespace) -> int:
+    from labrunner import api
+
     r = api.abort(args.db, campaign=args.campaign, wait_s=args.wait,
                   notify=lambda msg: print(msg, file=sys.stderr, flush=True))
     if r.outcome == "already":
@@ -268,6 +279,8 @@ def cmd_abort(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from labrunner import api
+
     with api.open(args.db) as db:
         campaign = db.campaign(args.campaign)
         to_stdout = str(args.csv) == "-"

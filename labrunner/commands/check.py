@@ -6,7 +6,6 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from labrunner import api
 from labrunner.errors import UserError
 from labrunner.store_address import StoreAddress, store_arg
 
@@ -51,6 +50,8 @@ examples:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    from labrunner import api  # here, not at the top: building the parser must not load the API
+
     if not (args.procedure or args.lab or args.sim_config or args.csv or args.db):
         raise UserError("nothing to check: give a procedure, --lab, --sim-config, --csv or --db")
     if args.ping and not args.lab:
@@ -96,6 +97,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def _check_run(procedure: Procedure, args: argparse.Namespace) -> None:
     """What `run` would refuse at its start, through the same function `run` calls."""
+    from labrunner import api
     from labrunner.run_validation import validate_run
     from labrunner.sim_config import sim_config_dict
 

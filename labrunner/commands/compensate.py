@@ -7,9 +7,7 @@ import sys
 import time
 from typing import Any
 
-from labrunner.calibration.apply import compensate_data, ins_of, read_model
 from labrunner.commands.types import count
-from labrunner.data_source import load_campaign_data
 from labrunner.errors import UserError
 from labrunner.output_paths import check_output
 from labrunner.store_address import data_arg, is_store
@@ -41,6 +39,10 @@ examples:
 
 
 def run(args: argparse.Namespace) -> int:
+    # Here, not at the top: building the parser must not load the calibration package (scipy, pandas).
+    from labrunner.calibration.apply import compensate_data, ins_of, read_model
+    from labrunner.data_source import load_campaign_data
+
     if args.ins is not None and not args.ins > 0:
         raise UserError(f"--ins must be a positive number of seconds, not {args.ins:g}")
     store = args.data if is_store(args.data) else None

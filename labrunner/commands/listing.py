@@ -7,10 +7,12 @@ Campaign ids otherwise appear only in error messages; this is where a user finds
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from labrunner import api
-from labrunner.runner.lease import STALE_AFTER_S
 from labrunner.store_address import StoreAddress, store_arg
+
+if TYPE_CHECKING:  # the handler imports it: building the parser must not load the store (SQLAlchemy)
+    from labrunner import api
 
 HEADER = ("id", "name", "status", "steps", "samples", "mode", "process", "last heartbeat")
 
@@ -40,6 +42,8 @@ def age_text(seconds: float) -> str:
 
 
 def _process(s: api.CampaignSummary) -> str:
+    from labrunner.runner.lease import STALE_AFTER_S
+
     holder = s.holder
     if holder is None:
         return "-"
@@ -62,6 +66,8 @@ def table_text(db: StoreAddress, summaries: list[api.CampaignSummary]) -> str:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
+    from labrunner import api
+
     summaries = api.list_campaigns(args.db)
     if not summaries:
         # A store with no campaign is not an error: `run --db` created it, or a first run was refused.

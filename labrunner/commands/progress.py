@@ -8,9 +8,10 @@ import math
 import os
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from labrunner.api import Progress
+if TYPE_CHECKING:  # annotations only: `labrunner --help` must not load the API (and pandas, the sims)
+    from labrunner.api import Progress
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from labrunner import api
 from labrunner.commands.types import count
 from labrunner.store_address import store_arg
 
@@ -31,6 +30,8 @@ examples:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from labrunner import api  # here, not at the top: building the parser must not load the report's figures
+
     result = api.report(args.db, html=args.html, campaign=args.campaign, force=args.force)
     explained = "".join(f"; {section}: {why}" for section, why in result.explained.items())
     print(f"campaign {result.campaign_id} ({result.status}): report written to {args.html} in "

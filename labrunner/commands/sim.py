@@ -12,7 +12,6 @@ import threading
 import time
 from pathlib import Path
 
-from labrunner import api
 from labrunner.commands.types import port, seconds
 from labrunner.output_paths import check_output
 
@@ -94,6 +93,8 @@ def is_loopback(host: str) -> bool:
 
 def serve_command(args: argparse.Namespace) -> int:
     import yaml
+
+    from labrunner import api  # here, not at the top: building the parser must not load the sims
 
     if args.lab_config:  # before the servers start: a refusal leaves nothing running
         check_output(args.lab_config, inputs=[args.config], force=args.force, option="--lab-config")
