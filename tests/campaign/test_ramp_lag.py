@@ -109,10 +109,11 @@ def test_the_end_hold_repeats_the_schedule_at_the_far_end_in_its_last_bin():
     assert [p.rate_index for p in extra] == [0, 1, 2] * 3
 
 
-def test_the_shipped_ramp_campaign_holds_at_the_ends_within_the_lab_time_target():
-    proc = parse_procedure((ROOT / "procedures" / "ramp_campaign.yaml").read_text(), "ramp_campaign.yaml")
-    assert proc.model.ramp is not None and proc.model.ramp.end_hold_s > 0
-    assert proc.estimated_duration_s() <= 1.5 * 86400
+def test_an_end_hold_lengthens_the_plan_and_is_validated():
+    held = parse_procedure(RAMP.replace("bin_c: 1.0}", "bin_c: 1.0, end_hold_s: 600}"), "ramp.yaml")
+    plain = parse_procedure(RAMP, "ramp.yaml")
+    assert len(held.steps()) > len(plain.steps())
+    assert held.estimated_duration_s() - plain.estimated_duration_s() == pytest.approx(2 * 600, abs=2 * 40)
     bad = RAMP.replace("bin_c: 1.0}", "bin_c: 1.0, end_hold_s: -5}")
     with pytest.raises(Exception, match="ramp.end_hold_s"):
         parse_procedure(bad, "ramp.yaml")
