@@ -208,7 +208,7 @@ def _read_typed(path: Path, label: str) -> pd.DataFrame | None:
         dtype[names[POWER_ON]] = "category"
         wanted.add(POWER_ON)
     try:
-        raw = pd.read_csv(path, dtype=dtype, usecols=[names[c] for c in names if c in wanted],  # type: ignore[arg-type]
+        raw = pd.read_csv(path, dtype=dtype, usecols=[names[c] for c in names if c in wanted],
                           keep_default_na=False, na_values=list(_EMPTY), skipinitialspace=True)
     except (ValueError, pd.errors.ParserError, UnicodeDecodeError, OverflowError):
         return None

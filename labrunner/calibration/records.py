@@ -140,15 +140,15 @@ class Outputs:
     def __len__(self) -> int:
         return int(self.columns[0].size)
 
-    def __getitem__(self, key: object) -> np.ndarray:
+    def __getitem__(self, key: Any) -> np.ndarray:
         if isinstance(key, tuple):
             rows, k = key
             if isinstance(k, int | np.integer):
                 return self.columns[int(k)][rows]
             return np.column_stack([c[rows] for c in self.columns])[:, k]
-        return np.column_stack([c[key] for c in self.columns])  # type: ignore[index]
+        return np.column_stack([c[key] for c in self.columns])
 
-    def __array__(self, dtype: object = None, copy: object = None) -> np.ndarray:
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
         return np.column_stack(self.columns).astype(dtype or float, copy=False)
 
 
@@ -255,8 +255,8 @@ def segment_records(frame: pd.DataFrame, options: RecordOptions | None = None) -
     starts, stops, interval = starts[keep], stops[keep], interval[keep]
 
     row_record = np.full(n, -1, dtype=np.int64)
-    for k, (s, e) in enumerate(zip(starts.tolist(), stops.tolist())):  # records are disjoint row ranges
-        row_record[s:e] = k
+    for label, (s, e) in enumerate(zip(starts.tolist(), stops.tolist())):  # records are disjoint row ranges
+        row_record[s:e] = label
     return records_from_labels(a, row_record, interval)
 
 
