@@ -286,7 +286,7 @@ class Campaign:
 
     def diagnose(self, **options: Any) -> Diagnosis:
         """Diagnose the simulated IMU model against this campaign, monitor rows included (see `labrunner.diagnose`)."""
-        return diagnose(self.data(include_monitor=True), **options)
+        return diagnose(self.db.path, campaign=self.id, **options)  # the store's bounded-memory path
 
     def export_csv(self, path: Any, include_monitor: bool = False, force: bool = False) -> int:
         """Write the campaign CSV format (a path or a text stream); returns the number of rows. A path

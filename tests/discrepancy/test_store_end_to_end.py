@@ -19,6 +19,12 @@ def test_diagnose_a_dry_run_from_the_store(tmp_path, hidden):
     cli("diagnose", db, "--json", out, check=0)
     d = json.loads(out.read_text())
     assert d["coverage"]["rows"] > 192 * 500  # the monitor rows are in
+    # The Python API reads the store the same bounded way (1 s summaries) and comes to the same answer.
+    import labrunner
+
+    via_api = labrunner.open(db).campaign().diagnose()
+    assert via_api.verdict == d["verdict"]
+    assert via_api.to_json()["coverage"]["rows"] == d["coverage"]["rows"]
     if hidden is None:
         assert d["verdict"] == "none", d["findings"]
         return
