@@ -44,9 +44,9 @@ examples:
                         "trained)")
     p.add_argument("--splits", default=",".join(SPLITS), metavar="NAMES",
                    help=f"evaluation splits, comma-separated (default: all: {', '.join(SPLITS)})")
-    p.add_argument("--thermal-lag", default=None, metavar="S|auto",
-                   help="the sensing element's thermal lag behind its temperature sensor: a time constant in s "
-                        "(e.g. the diagnosis's thermal_lag finding) or 'auto' to search it; the lag-corrected "
+    p.add_argument("--thermal-lag", default=None, metavar="TAU_S",
+                   help="the sensing element's thermal lag behind its temperature sensor: a time constant TAU_S in "
+                        "s (e.g. the diagnosis's thermal_lag finding) or 'auto' to search it; the lag-corrected "
                         "fit is used when it lowers the held-out error (default: the logged temperature)")
     p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
     p.add_argument("--seed", type=count, default=0, metavar="N", help="seed of the random held-out split")
