@@ -111,9 +111,13 @@ class TableServer:
     def _operate(self, operation: str, values: dict[str, str]) -> str | None:
         lang = self.language
         table = self.world.table
-        now = self.clock.now()
         ack = lang.ack.format()
         with self.world.lock:
+            # The time is read under the world's lock: the IMU stream (a ticker thread on a served clock)
+            # generates its frames under it too, so no frame is timed after a command yet made before it
+            # with the old rate. Read before the lock, a command waiting for a chunk of up to MAX_CHUNK_S
+            # took effect in the past: at 600x the first seconds of a record carried the previous rate.
+            now = self.clock.now()
             if operation == "identity":
                 return lang.replies["identity"].format(vendor=VENDOR, model=MODEL, serial=SERIAL)
             if operation == "limits":
