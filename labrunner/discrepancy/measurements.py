@@ -235,13 +235,9 @@ def _row_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray, table: np.n
         return weight, spacing, typical
     variance: dict[int, np.ndarray] = {}
     for c in classes:
-        idx = np.flatnonzero(cls == c)
-        pair = idx[:-1][(np.diff(idx) == 1) & same[idx[:-1].clip(max=n - 2)] & (table[idx[1:]] == table[idx[:-1]])]
-        if pair.size < 20:
-            continue
-        dy = output[pair + 1] - output[pair]
-        mad = np.median(np.abs(dy - np.median(dy, axis=0)), axis=0)
-        variance[int(c)] = np.maximum((1.4826 * mad) ** 2 / 2.0, 1e-30)
+        v = _pair_variance(np.flatnonzero(cls == c), same, table, output)
+        if v is not None:
+            variance[int(c)] = v
     if not variance:
         return weight, spacing, typical
     ref = max(variance, key=lambda c: counts[classes == c][0])
@@ -253,13 +249,24 @@ def _row_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray, table: np.n
     return weight, spacing, typical
 
 
+def _pair_variance(idx: np.ndarray, same: np.ndarray, table: np.ndarray, output: np.ndarray) -> np.ndarray | None:
+    """Per-channel noise variance of one kind of row, from successive pairs of them in one run at one
+    table rate (robust: MAD of the differences); None with fewer than 20 such pairs."""
+    n = output.shape[0]
+    pair = idx[:-1][(np.diff(idx) == 1) & same[idx[:-1].clip(max=n - 2)] & (table[idx[1:]] == table[idx[:-1]])]
+    if pair.size < 20:
+        return None
+    dy = output[pair + 1] - output[pair]
+    mad = np.median(np.abs(dy - np.median(dy, axis=0)), axis=0)
+    return np.maximum((1.4826 * mad) ** 2 / 2.0, 1e-30)
+
+
 def _summary_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray, table: np.ndarray,
                      summary: RowSummary) -> tuple[np.ndarray, np.ndarray, float]:
     """`_row_weights` for a log of summaries: the averaged rows weigh their samples (in units of the
     most common kind of row, as when the samples themselves were rows), the other rows by their
     noise against it; the typical spacing is the rows' own."""
     assert summary.raw_variance is not None
-    n = t.size
     _, spacing, typical = _row_weights(t, run, output, table)  # spacings only: weights below
     averaged = summary.averaged
     same = (run[1:] == run[:-1]) & (np.diff(t) > 0)
@@ -271,12 +278,9 @@ def _summary_weights(t: np.ndarray, run: np.ndarray, output: np.ndarray, table: 
     for c in np.unique(cls[~averaged]):
         idx = np.flatnonzero(cls == c)
         counts[int(c)] = float(idx.size)
-        pair = idx[:-1][(np.diff(idx) == 1) & same[idx[:-1].clip(max=n - 2)] & (table[idx[1:]] == table[idx[:-1]])]
-        if pair.size < 20:
-            continue
-        dy = output[pair + 1] - output[pair]
-        mad = np.median(np.abs(dy - np.median(dy, axis=0)), axis=0)
-        variance[int(c)] = np.maximum((1.4826 * mad) ** 2 / 2.0, 1e-30)
+        v = _pair_variance(idx, same, table, output)
+        if v is not None:
+            variance[int(c)] = v
     weight = summary.samples.astype(float)
     ref_var = summary.raw_variance
     top = max(counts, key=counts.__getitem__) if counts else None
