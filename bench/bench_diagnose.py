@@ -14,8 +14,9 @@ time on the shared machine also counts the others' load (both are printed, with 
 With `--store PATH`, the whole `labrunner diagnose PATH` command runs on a store (the paper
 campaign's, e.g.) in a child process, and its CPU time (and, for information, its wall time) is
 compared with 30 s and its peak RSS with 2 GB (issue 15, target 2). `--hog` runs it with a second
-process spinning on one core (issue 15, target 5). Exit 0 when the CPU time and memory targets are
-met, 1 otherwise (the wall time on the shared machine counts the others' load; it is printed with it).
+process spinning on one core (issue 15, target 5). Exit 0 when the bench ran, also when a target is
+missed (each target line says OK or MISSED; the wall time on the shared machine counts the others'
+load and is printed with it); non-zero when the diagnosis failed or was killed for memory.
 """
 
 from __future__ import annotations
@@ -74,10 +75,10 @@ def store(path: Path) -> int:
         print(run.stdout.strip())
         m = run.measured
         print(f"labrunner diagnose {path}: {m.line()}")
-        results = [report("diagnose store CPU time", m.cpu_s, TARGET_S, "s"),
-                   report("diagnose store peak RSS", m.peak_rss_bytes / 1e9, STORE_RSS_LIMIT_BYTES / 1e9, "GB")]
+        report("diagnose store CPU time", m.cpu_s, TARGET_S, "s")
+        report("diagnose store peak RSS", m.peak_rss_bytes / 1e9, STORE_RSS_LIMIT_BYTES / 1e9, "GB")
         report("diagnose store wall time", m.wall_s, TARGET_S, "s")  # counts the others' load: not the verdict
-    return 0 if all(r.ok for r in results) else 1
+    return 0
 
 
 def run() -> int:
@@ -108,8 +109,8 @@ def synthetic(args: argparse.Namespace) -> int:
             elapsed, cpu = time.perf_counter() - t1, time.process_time() - c1
             print(f"labrunner diagnose (CSV, {len(frame)} rows): {elapsed:.1f} s wall, {cpu:.1f} s CPU, exit {code}")
         print(load_line())
-        ok = report("diagnose CSV CPU time", cpu, TARGET_S, "s").ok
-        return code or (0 if ok else 1)
+        report("diagnose CSV CPU time", cpu, TARGET_S, "s")
+        return code
     print(f"before: {load_line()}")
     t1 = time.perf_counter()
     c1 = time.process_time()
@@ -122,9 +123,9 @@ def synthetic(args: argparse.Namespace) -> int:
         print(f"  {f.status} {f.cause} {f.channels} {f.to_json()['parameters']} "
               f"held-out RMS -{f.gain.improvement_pct:.1f} %")
     print(f"after:  {load_line()}")
-    result = report(f"diagnose CPU time, {len(frame)} rows", cpu, TARGET_S, "s")
+    report(f"diagnose CPU time, {len(frame)} rows", cpu, TARGET_S, "s")
     report(f"diagnose wall time, {len(frame)} rows", elapsed, TARGET_S, "s")
-    return 0 if result.ok else 1
+    return 0
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Where `labrunner diagnose DB` spends its memory and time, stage by stage.
 
-Usage: python bench/bench_diagnose_stages.py DB [--frame] [--report]
+Usage: python bench/bench_diagnose_stages.py DB [--frame] [--report] [--hog]
 
 Runs the diagnosis of a store in this process with tracemalloc on and, for each stage (reading the
 store, `Measurements.from_frame`, the coverage, the blocks, the drift filter, the candidate designs
@@ -11,6 +11,13 @@ process's peak RSS. By default the store is read in 1 s summaries chunk by chunk
 does; `--frame` reads it as one frame of every sample (the way before issue 15), for comparison.
 Nested stages count in their callers too (the
 cause search holds most of the designs).
+
+Target lines (issue 15, target 2: `diagnose` of the paper store <= 30 s, <= 2 GB): the whole run's
+CPU time and peak RSS against them. Both are upper bounds of the command's: tracemalloc's
+bookkeeping costs CPU on every allocation and some memory (`labrunner diagnose` under
+bench_diagnose.py --store gives the figures without it). `--hog` runs the diagnosis beside a
+process spinning on one core (issue 15, target 5). Exit 0 when it ran, also when a target is
+missed; 1 when the store cannot be read.
 """
 
 from __future__ import annotations
@@ -28,6 +35,11 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from bench.common import cpu_hog, load_line, report  # noqa: E402
+
+TARGET_CPU_S = 30.0  # issue 15, target 2: diagnose of the paper store
+TARGET_RSS_GB = 2.0
 
 STATS: dict[str, list[float]] = {}  # name -> [calls, cpu_s, largest extra bytes]
 _STACK: list[list[float]] = []  # per open stage: [bytes held at entry, highest traced bytes inside]
@@ -90,7 +102,10 @@ def main() -> int:
     parser.add_argument("db", type=Path)
     parser.add_argument("--frame", action="store_true", help="read every sample into one frame (the old way)")
     parser.add_argument("--report", action="store_true", help="also draw the report")
+    parser.add_argument("--hog", action="store_true", help="beside a second process spinning on one core")
     args = parser.parse_args()
+    if not args.db.is_file():
+        parser.error(f"{args.db}: no such store")
     tracemalloc.start()
     instrument()
     from labrunner import api
@@ -99,30 +114,36 @@ def main() -> int:
     from labrunner.discrepancy.measurements import Measurements
     from labrunner.discrepancy.summary import read_store_summary
 
-    c0, t0 = time.process_time(), time.perf_counter()
-    if args.frame:
-        held, _ = tracemalloc.get_traced_memory()
-        tracemalloc.reset_peak()
-        c1 = time.process_time()
-        frame = api.load_data(args.db, include_monitor=True).frame
-        STATS["read store (one frame)"] = [1, time.process_time() - c1, tracemalloc.get_traced_memory()[1] - held]
-        meas = Measurements.from_frame(frame)
-        del frame
-    else:
-        stored = read_store_summary(args.db)
-        meas = Measurements.from_frame(stored.frame, stored.summary)
-        del stored
-    result = diagnose(meas, DiagnoseOptions())
-    if args.report:
-        with tempfile.TemporaryDirectory(prefix="bench-stages-") as tmp:
-            report_module.write_report(result, Path(tmp) / "report")
-    cpu, wall = time.process_time() - c0, time.perf_counter() - t0
+    print(f"before: {load_line()}{', CPU hog' if args.hog else ''}")
+    with cpu_hog(args.hog):
+        c0, t0 = time.process_time(), time.perf_counter()
+        if args.frame:
+            held, _ = tracemalloc.get_traced_memory()
+            tracemalloc.reset_peak()
+            c1 = time.process_time()
+            frame = api.load_data(args.db, include_monitor=True).frame
+            STATS["read store (one frame)"] = [1, time.process_time() - c1,
+                                               tracemalloc.get_traced_memory()[1] - held]
+            meas = Measurements.from_frame(frame)
+            del frame
+        else:
+            stored = read_store_summary(args.db)
+            meas = Measurements.from_frame(stored.frame, stored.summary)
+            del stored
+        result = diagnose(meas, DiagnoseOptions())
+        if args.report:
+            with tempfile.TemporaryDirectory(prefix="bench-stages-") as tmp:
+                report_module.write_report(result, Path(tmp) / "report")
+        cpu, wall = time.process_time() - c0, time.perf_counter() - t0
     print(f"{args.db}: {len(meas)} rows, verdict {result.verdict}, {cpu:.1f} s CPU, {wall:.1f} s wall")
     print(f"{'stage':44s} {'calls':>6s} {'CPU s':>8s} {'peak extra MB':>14s}")
     for name, (calls, cpu_s, extra) in STATS.items():
         print(f"{name:44s} {int(calls):6d} {cpu_s:8.2f} {extra / 1e6:14.0f}")
-    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3:.0f} MB (tracemalloc's own "
-          "bookkeeping included)")
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print(f"peak RSS {rss / 1e6:.0f} MB (tracemalloc's own bookkeeping included)")
+    print(f"after:  {load_line()}{', CPU hog' if args.hog else ''}")
+    report("diagnose CPU (tracemalloc on)", cpu, TARGET_CPU_S, "s")
+    report("diagnose peak RSS (tracemalloc on)", rss / 1e9, TARGET_RSS_GB, "GB")
     return 0
 
 

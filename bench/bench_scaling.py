@@ -1,7 +1,7 @@
 """Cost that grows no faster than the work: `fit`, `export` and `diagnose` on stores 1x to 10x the paper campaign.
 
 Usage: python bench/bench_scaling.py [--scales 1,2,5,10] [--base-fraction 1.0] [--commands fit,export,diagnose]
-                                     [--hog] [--keep] [--workdir DIR] [--seed 0]
+                                     [--hog] [--keep] [--workdir DIR] [--max-rss-gb 10] [--seed 0]
 
 The paper campaign (procedures/paper_campaign.yaml: 4080 record steps of 3000 samples, 12.24 M
 samples) is synthesised once by the simulated lab's physics (sims.campaign.synthesize: the same
@@ -23,16 +23,26 @@ flat memory). `--hog` runs every command a second time beside a process spinning
 and prints the busy/quiet wall-time ratio (target 1: no worse than 1.5x).
 
 A scale whose projected peak RSS (extrapolated from the scales measured before it, linearly
-through the last two; proportional to the samples from one) would exceed 90 % of the memory
-available now is skipped with a message, and a command is killed if its memory passes that
-bound anyway. The stores, CSVs and outputs are deleted at the end unless --keep. Exit 0 when the
-bench ran (targets missed are printed as MISSED); non-zero when a command failed or nothing could
-be measured.
+through the last two; proportional to the samples from one) would exceed the memory bound (the
+smaller of --max-rss-gb and 90 % of the memory available now) is skipped with a message, and a
+command is killed if its resident memory passes that bound anyway.
+
+With --workdir DIR the stores are built in DIR and stay there: a later run with the same scale,
+unit, seed and procedure reuses them (each store's manifest, written when its build finished,
+records what it holds), so several command sets pay for one build. Building is never part of a
+command's figures (each command is a separate child process, started after its store is complete
+and read through once, so reused and fresh stores start equally warm). Without --workdir the
+stores live in a temporary directory deleted at the end unless --keep; the commands' outputs
+(model files, JSON, the exported CSV) are deleted after each command unless --keep. Exit 0 when
+the bench ran (targets missed are printed as MISSED); non-zero when a command failed or nothing
+could be measured.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import logging
 import shutil
 import signal
@@ -62,6 +72,8 @@ LSB = (0.001, 0.00875, 0.01)  # accel g, gyro deg/s, temperature C per count: th
 COMMANDS = ("fit", "export", "diagnose")
 COUNT_LSB = np.array(LSB)[[0, 0, 0, 1, 1, 1, 2]]  # per column of (accel xyz, gyro xyz, temp)
 MEMORY_SHARE = 0.9  # of MemAvailable a command may be projected (and allowed) to take
+MAX_RSS_GB = 10.0  # and never more than this: the machine is shared with others' 2 GB fits
+MANIFEST = "store.json"  # beside a finished store: what it holds (a store without one is rebuilt)
 
 
 @dataclass
@@ -174,6 +186,49 @@ def build_store(db: Path, campaign: Campaign, scale: float, procedure: Path) -> 
     return samples, monitor_rows
 
 
+@dataclass(frozen=True)
+class StoreSpec:
+    """What a built store holds: a store is reused only when all of it matches."""
+
+    scale: float
+    base_fraction: float
+    seed: int
+    procedure_sha256: str
+
+    def dirname(self) -> str:
+        return f"scale_{self.scale:g}x_unit_{self.base_fraction:g}_seed_{self.seed}"
+
+
+def procedure_sha256(procedure: Path) -> str:
+    return hashlib.sha256(procedure.read_bytes()).hexdigest()
+
+
+def reusable_store(where: Path, spec: StoreSpec) -> tuple[int, int] | None:
+    """(record samples, monitor rows) of the finished store in `where` built for `spec`, or None."""
+    db, manifest = where / "campaign.db", where / MANIFEST
+    try:
+        info = json.loads(manifest.read_text())
+    except (OSError, ValueError):
+        return None
+    if (info.get("spec") != spec.__dict__ or not db.exists() or db.stat().st_size != info.get("db_bytes")):
+        return None
+    return int(info["samples"]), int(info["monitor_rows"])
+
+
+def write_manifest(where: Path, spec: StoreSpec, samples: int, monitor_rows: int, build_s: float) -> None:
+    db = where / "campaign.db"
+    (where / MANIFEST).write_text(json.dumps({"spec": spec.__dict__, "samples": samples,
+                                              "monitor_rows": monitor_rows, "db_bytes": db.stat().st_size,
+                                              "build_s": round(build_s, 1)}, indent=1))
+
+
+def read_through(path: Path) -> None:
+    """Read a file once so the commands after it find it in the page cache, built now or long ago."""
+    with path.open("rb") as f:
+        while f.read(16 << 20):
+            pass
+
+
 def command_line(name: str, db: Path, out: Path) -> list[str]:
     cli = [sys.executable, "-m", "labrunner.cli"]
     if name == "fit":
@@ -209,7 +264,7 @@ def run_command(cmd: list[str], hog: bool, limit: int) -> Measured:
     with cpu_hog(hog):
         done = run_measured(cmd, memory_limit_bytes=limit)
     if done.killed_for_memory:
-        raise MemoryError(f"killed at {limit / 1e9:.1f} GB resident (90 % of the memory available)")
+        raise MemoryError(f"killed when its resident memory passed the bound {limit / 1e9:.1f} GB")
     if done.measured.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd[2:])} exited {done.measured.returncode}:\n{done.stderr[-3000:]}")
     return done.measured
@@ -243,8 +298,13 @@ def main() -> int:
     ap.add_argument("--commands", default=",".join(COMMANDS), help=f"from {', '.join(COMMANDS)}")
     ap.add_argument("--procedure", type=Path, default=ROOT / "procedures" / "paper_campaign.yaml")
     ap.add_argument("--hog", action="store_true", help="also run every command beside a CPU hog")
-    ap.add_argument("--keep", action="store_true", help="keep the stores and outputs")
-    ap.add_argument("--workdir", type=Path, default=None, help="where to build the stores (default: a temporary dir)")
+    ap.add_argument("--keep", action="store_true", help="keep the temporary stores and the commands' outputs")
+    ap.add_argument("--workdir", type=Path, default=None,
+                    help="build the stores here and keep them for later runs, which reuse them (default: a "
+                         "temporary dir)")
+    ap.add_argument("--max-rss-gb", type=float, default=MAX_RSS_GB,
+                    help=f"skip or kill a command projected to or passing this peak RSS (default {MAX_RSS_GB:g}; "
+                         f"never above {MEMORY_SHARE:.0%}% of the memory available)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     try:
@@ -258,6 +318,10 @@ def main() -> int:
         ap.error("--base-fraction must be in [0.1, 1] (records of 6 to 60 s; the fit needs stretches of 5 s)")
     if unknown := sorted(set(commands) - set(COMMANDS)):
         ap.error(f"--commands: unknown {', '.join(unknown)} (from {', '.join(COMMANDS)})")
+    if args.max_rss_gb <= 0:
+        ap.error("--max-rss-gb must be positive")
+    if not args.procedure.is_file():
+        ap.error(f"--procedure: no such file: {args.procedure}")
     logging.basicConfig(level=logging.WARNING)
     # A terminated bench unwinds like an interrupted one: children and hog killed, stores deleted.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
@@ -265,48 +329,67 @@ def main() -> int:
     if args.workdir:
         args.workdir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="labrunner-bench-scaling-", dir=args.workdir))
+    stores_root = args.workdir if args.workdir else work
+    sha = procedure_sha256(args.procedure)
     results: dict[str, list[Row]] = {c: [] for c in commands}
     skipped = 0
+    campaign: Campaign | None = None
     try:
-        t0 = time.perf_counter()
-        campaign = synthesise(args.base_fraction, args.seed)
-        print(f"synthesised the paper campaign at {args.base_fraction:g}x ({len(campaign.records)} records) in "
-              f"{time.perf_counter() - t0:.1f} s")
         for scale in scales:
-            where = work / f"scale_{scale:g}x"
-            where.mkdir()
+            spec = StoreSpec(scale, args.base_fraction, args.seed, sha)
+            where = stores_root / spec.dirname()
             db = where / "campaign.db"
-            t0 = time.perf_counter()
-            samples, monitor_rows = build_store(db, campaign, scale, args.procedure)
-            print(f"\n{scale:g}x: {samples:,} record samples + {monitor_rows:,} monitor rows stored in "
-                  f"{time.perf_counter() - t0:.1f} s ({samples / (time.perf_counter() - t0) / 1e6:.1f} M/s); "
-                  f"store {db.stat().st_size / 1e6:,.0f} MB")
+            found = reusable_store(where, spec)
+            if found is not None:
+                samples, monitor_rows = found
+                print(f"\n{scale:g}x: reusing {db}: {samples:,} record samples + {monitor_rows:,} monitor rows; "
+                      f"store {db.stat().st_size / 1e6:,.0f} MB")
+            else:
+                if campaign is None:  # synthesised only when a store has to be built
+                    t0 = time.perf_counter()
+                    campaign = synthesise(args.base_fraction, args.seed)
+                    print(f"synthesised the paper campaign at {args.base_fraction:g}x ({len(campaign.records)} "
+                          f"records) in {time.perf_counter() - t0:.1f} s")
+                shutil.rmtree(where, ignore_errors=True)  # a build that did not finish
+                where.mkdir(parents=True)
+                t0 = time.perf_counter()
+                samples, monitor_rows = build_store(db, campaign, scale, args.procedure)
+                build_s = time.perf_counter() - t0
+                write_manifest(where, spec, samples, monitor_rows, build_s)
+                print(f"\n{scale:g}x: {samples:,} record samples + {monitor_rows:,} monitor rows stored in "
+                      f"{build_s:.1f} s ({samples / build_s / 1e6:.2f} M samples/s); "
+                      f"store {db.stat().st_size / 1e6:,.0f} MB")
+            read_through(db)
+            out = work / f"out_{scale:g}x"
             for name in commands:
                 avail = available_memory_bytes()
-                limit = int(avail * MEMORY_SHARE)
+                limit = int(min(avail * MEMORY_SHARE, args.max_rss_gb * 1e9))
                 history = [(r.samples, r.quiet.peak_rss_bytes) for r in results[name]]
                 projected = projected_rss(history, samples)
                 if projected is not None and projected > limit:
-                    print(f"  {name:8s} SKIPPED: projected peak RSS {projected / 1e9:.1f} GB > "
-                          f"{MEMORY_SHARE:.0%} of the {avail / 1e9:.1f} GB available")
+                    print(f"  {name:8s} SKIPPED: projected peak RSS {projected / 1e9:.1f} GB > the bound "
+                          f"{limit / 1e9:.1f} GB (--max-rss-gb {args.max_rss_gb:g}, {MEMORY_SHARE:.0%} of the "
+                          f"{avail / 1e9:.1f} GB available)")
                     skipped += 1
                     continue
+                out.mkdir(exist_ok=True)
                 try:
-                    quiet = run_command(command_line(name, db, where), False, limit)
+                    quiet = run_command(command_line(name, db, out), False, limit)
                     print(f"  {name:8s} {quiet.line()}  [{load_line()}]", flush=True)
                     hogged = None
                     if args.hog:
-                        hogged = run_command(command_line(name, db, where), True, limit)
+                        hogged = run_command(command_line(name, db, out), True, limit)
                         print(f"  {name:8s} {hogged.line()}  with a CPU hog [{load_line()}]", flush=True)
                         report(f"  {name} {scale:g}x wall busy/quiet", hogged.wall_s / quiet.wall_s, 1.5, "x")
                 except MemoryError as exc:
                     print(f"  {name:8s} SKIPPED: {exc}")
                     skipped += 1
                     continue
+                finally:
+                    if not args.keep:  # the exported CSV is up to 12 GB at 10x
+                        shutil.rmtree(out, ignore_errors=True)
                 results[name].append(Row(scale, samples, quiet, hogged))
-                if name == "export":
-                    (where / "export.csv").unlink(missing_ok=True)  # up to 12 GB at 10x
-            if not args.keep:
+            if not args.workdir and not args.keep:
                 shutil.rmtree(where)
         print(f"\ntargets (issue 15, target 3: linear time, flat memory, {scales[0]:g}x to {scales[-1]:g}x "
               f"of {args.base_fraction:g} paper campaign; {load_line()}):")
@@ -318,6 +401,8 @@ def main() -> int:
         print(f"bench_scaling: {exc}", file=sys.stderr)
         return 1
     finally:
+        if args.workdir:
+            print(f"stores kept for reuse in {args.workdir}")
         if args.keep:
             print(f"kept: {work}")
         else:
