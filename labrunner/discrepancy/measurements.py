@@ -139,7 +139,7 @@ class Measurements:
         first = t[np.flatnonzero(power)][segment]
         label_changes = int(np.sum(label[1:] != label[:-1]))
         continuous = int(np.sum((label[1:] != label[:-1]) & ~power[1:]))
-        quantum = _quantum(temp)
+        quantum = temperature_quantum(temp)
         logged = None
         jitter, reversals = temperature_jitter(t, temp, run)
         smoothing_s = 0.0
@@ -305,7 +305,7 @@ def _step_time(t: np.ndarray, temp: np.ndarray, run: np.ndarray, quantum: float)
     return float(np.clip(quantum / np.percentile(ramping, 75), 5.0, 600.0))
 
 
-def _quantum(temp: np.ndarray) -> float | None:
+def temperature_quantum(temp: np.ndarray) -> float | None:
     """The temperature step of a coarse logger (all values on a grid), or None."""
     values = np.unique(np.round(temp, 6))
     if values.size < 3:
