@@ -15,7 +15,16 @@ import numpy as np
 import pytest
 
 from labrunner.discrepancy import Measurements, diagnose
-from labrunner.discrepancy.allan import TARGET, _design, _project, allan_curve, bases, octave_taus, stretches
+from labrunner.discrepancy.allan import (
+    TARGET,
+    _design,
+    _project,
+    allan_curve,
+    bases,
+    model_curve,
+    octave_taus,
+    stretches,
+)
 from labrunner.domain import CHANNELS
 
 from .log_like import _flicker, log_like
@@ -155,3 +164,25 @@ def test_records_end_at_gaps_power_ons_and_remounts():
     assert {int(i) for i in np.flatnonzero(np.diff(o)) + 1} <= set(starts)
     assert all(p.stop - p.start >= 256 for p in parts)
     assert len(np.unique(meas.run)) == 1  # no power-on among them: the records end at the remounts anyway
+
+
+def test_a_top_octave_miss_is_the_measured_curves_own_scatter():
+    """The worst log of bench_noise's seeds (10; 48 h): the fitted model misses the measured Allan deviation
+    of accel_z by 40 % at 4096 s. The curve of the noise hidden in the log, seen through the same fit (the
+    simulator's noise model at the hidden parameters on `bases`), shows whose miss it is: the measured curve
+    lies 39 % below it there, the fitted model within the target of it at every octave on every channel. (Over
+    24 such logs, 144 channels: the fitted model within 20 % of the hidden curve at every octave on all of
+    them; the measured curve off it by a log-sd of 0.14 at 4096 s, where Greenhall's interval is +-0.12.)"""
+    frame, truth = log_like(10, 48, continuous=True)
+    fit = diagnose(frame).allan
+    assert fit is not None
+    meas = Measurements.from_frame(frame)
+    taus = fit.measured.tau_s
+    hidden = np.array([[truth.white[c], truth.bias_instability[c], truth.rate_random_walk[c]] for c in CHANNELS])
+    true_curve = model_curve(hidden, bases(meas, stretches(meas), taus), taus).adev
+    after_vs_measured = fit.after.adev / fit.measured.adev - 1.0
+    missed = np.argwhere(np.abs(after_vs_measured) > TARGET)
+    assert missed.size, "the miss this test is about is gone: update the docstring and bench figures"
+    for j, i in missed:
+        assert abs(fit.measured.adev[j, i] / true_curve[j, i] - 1.0) > TARGET, (taus[j], CHANNELS[i])
+    assert np.all(np.abs(fit.after.adev / true_curve - 1.0) <= TARGET)
