@@ -1,6 +1,7 @@
 """Chamber time against accuracy (issue 16): the strict, predictive and ramp campaigns side by side.
 
-Usage: nice python bench/bench_chamber_time.py [--seed 3] [--workdir DIR] [--only strict,fast,ramp]
+Usage: nice python bench/bench_chamber_time.py [--seed 3] [--workdir DIR] [--only strict,fast,ramp] [--refit]
+       [--hog]
 
 Runs on the simulated lab, one seed and one IMU for all (the paper's IMU plus a thermal lag of the
 sensing element behind its temperature sensor and a non-cubic step in the temperature law):
@@ -16,12 +17,17 @@ heating at 1 C/min). Each exported polynomial.json is applied to the held-out ro
 the error is the RMS over x, y, z and over the held-out records of each record's mean compensated minus
 true specific force / angular rate (per sample the sensor noise would hide every difference). PX4's method
 (`labrunner.calibration.px4_reference`, offsets only, one cubic per orientation from a temperature
-sweep) is fitted on the ramp campaign's static rows: the reference row.
+sweep) is fitted on the ramp campaign's static rows: the reference row. PX4 has the sensor's temperature
+only, so it is fitted and scored on the logged temperature, also when the campaigns' models take the
+lag-corrected one (a line after the table says which).
 
 A --workdir keeps the stores; a campaign whose store holds a finished run is not run again (its
-models are fitted again from the store when they are missing). Without one, the stores go to a
-temporary directory removed at the end. Prints lab time, samples and held-out errors, each campaign's
-ratios to the strict one, then issue 16's targets, one line each with the measured value and its ratio
+models are fitted again from the store when they are missing; `--refit` fits the campaigns of --only
+again, with the code as it is now). Without one, the stores go to a temporary directory removed at the
+end. `--hog` runs everything beside a process spinning on one core (`bench.common.cpu_hog`): the
+simulated lab's clock is virtual, so lab time and errors must not move with the machine's load.
+Prints lab time, samples and held-out errors, each campaign's ratios to the strict one, which
+temperature each row was scored on, then issue 16's targets, one line each with the measured value and its ratio
 to the target (`bench.common.report`: ratio <= 1 is met). Exits 0 whether or not a target is met;
 non-zero only when something crashed (a campaign run that failed).
 """
@@ -30,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -42,7 +49,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import load_line, report  # noqa: E402
+from bench.common import cpu_hog, load_line, report  # noqa: E402
 
 IMU_EFFECTS = {
     "thermal_lag": {"tau_s": 240.0, "channels": ["accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z"]},
@@ -101,7 +108,7 @@ def _finished(db: Path) -> bool:
         return s.campaign(1).status == "done"
 
 
-def run_campaign(name: str, text: str, work: Path, sim: Path, seed: int) -> Run:
+def run_campaign(name: str, text: str, work: Path, sim: Path, seed: int, refit: bool = False) -> Run:
     from labrunner.store import Store
 
     proc = work / f"{name}.yaml"
@@ -121,7 +128,9 @@ def run_campaign(name: str, text: str, work: Path, sim: Path, seed: int) -> Run:
         info = s.campaign(1)
         steps = s.steps_frame(1)
         run = Run(name, db, fit_dir, (info.clock_last - info.clock_t0) / 3600.0, int(steps.n_samples.sum()), wall)
-        if name in CAMPAIGNS and not (fit_dir / "polynomial.json").exists():
+        if name in CAMPAIGNS and (refit or not (fit_dir / "polynomial.json").exists()):
+            if refit:
+                shutil.rmtree(fit_dir, ignore_errors=True)
             _refit(s, fit_dir)
         return run
 
@@ -133,6 +142,14 @@ def _refit(store, fit_dir: Path) -> None:
 
     proc = parse_procedure(store.campaign(1).procedure_text, "stored procedure", stored=True)
     fit_and_store(store, 1, proc.model.fit, fit_dir)
+
+
+def _filter_tau(model_path: Path) -> float | None:
+    """tau of the model file's temperature filter (None: the model takes the logged temperature)."""
+    from labrunner.calibration.apply import read_model
+
+    f = read_model(model_path).temperature_filter
+    return None if f is None else f.tau_s
 
 
 def _rms(err: np.ndarray) -> float:
@@ -180,13 +197,22 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--workdir", type=Path, default=None)
-    ap.add_argument("--only", default="strict,fast,ramp")
+    ap.add_argument("--only", default="strict,fast,ramp", help="campaigns to run, from strict,fast,ramp")
+    ap.add_argument("--refit", action="store_true",
+                    help="with --workdir: fit the kept campaigns of --only again with the current code")
+    ap.add_argument("--hog", action="store_true", help="run beside a process hogging one core")
     args = ap.parse_args()
-    if args.workdir is not None:
-        args.workdir.mkdir(parents=True, exist_ok=True)
-        return bench(args, args.workdir)
-    with tempfile.TemporaryDirectory(prefix="labrunner-chamber-time-") as tmp:
-        return bench(args, Path(tmp))
+    unknown = [n for n in args.only.split(",") if n and n not in CAMPAIGNS]
+    if unknown:
+        ap.error(f"--only: unknown campaign {unknown[0]!r}; expected some of {','.join(CAMPAIGNS)}")
+    with cpu_hog(args.hog) as hog:
+        if hog is not None:
+            print(f"cpu hog: pid {hog} spinning on one core", flush=True)
+        if args.workdir is not None:
+            args.workdir.mkdir(parents=True, exist_ok=True)
+            return bench(args, args.workdir)
+        with tempfile.TemporaryDirectory(prefix="labrunner-chamber-time-") as tmp:
+            return bench(args, Path(tmp))
 
 
 # Issue 16's targets: lab time, and held-out error against the strict campaign's (each column).
@@ -206,7 +232,7 @@ def bench(args: argparse.Namespace, work: Path) -> int:
     sim = work / "sim.json"
     sim.write_text(json.dumps({"seed": args.seed, "imu_model": {"effects": IMU_EFFECTS}}))
     names = [n for n in args.only.split(",") if n]
-    runs = [run_campaign(n, _shipped(CAMPAIGNS[n]), work, sim, args.seed) for n in names]
+    runs = [run_campaign(n, _shipped(CAMPAIGNS[n]), work, sim, args.seed, args.refit) for n in names]
     held = [run_campaign("heldout_soaks", HELDOUT_SOAKS, work, sim, args.seed + 100),
             run_campaign("heldout_heating", HELDOUT_HEATING, work, sim, args.seed + 101)]
     frames = {h.name: load_campaign_data(h.db).frame for h in held}
@@ -238,13 +264,20 @@ def bench(args: argparse.Namespace, work: Path) -> int:
 
     row("raw", None, None, None, errs_for(None))
     results = {}
+    lagged: list[str] = []
     for r in runs:
         e = errs_for(r.fit_dir / "polynomial.json")
         results[r.name] = (r, e)
         row(r.name, r.lab_h, r.samples, r.wall_s, e)
+        tau = _filter_tau(r.fit_dir / "polynomial.json")
+        if tau is not None:
+            lagged.append(f"{r.name} (tau {tau:.0f} s)")
     px4_errs = errs_for(None, px4) if px4 is not None else None
     if px4_errs is not None:
         row("px4 (ramp)", None, None, None, px4_errs)
+    print("temperatures scored: " + (f"lag-corrected for {', '.join(lagged)} (the model's temperature_filter), "
+                                     if lagged else "") + "the logged sensor temperature for the others and for "
+          "px4 (PX4 has the sensor's temperature only; fitted on the ramp's logged temperature too)")
     base = results.get("strict")
     if base is not None:
         for name, (r, e) in results.items():

@@ -19,6 +19,7 @@ from labrunner.store_address import is_store
 from .fit import FitOptions
 from .outputs import write_outputs
 from .report import summary_markdown
+from .thermal_lag_fit import DIAGNOSIS_PREFIX, lag_from_diagnosis
 
 
 def _options(args: argparse.Namespace) -> FitOptions:
@@ -34,11 +35,17 @@ def _options(args: argparse.Namespace) -> FitOptions:
     export = args.export_rbf or ("hybrid" if "hybrid" in variants else (variants[0] if variants else ""))
     splits = tuple(s.strip() for s in args.splits.split(",") if s.strip())
     lag: float | str | None = args.thermal_lag
-    if lag is not None and lag != "auto":
+    if isinstance(lag, str) and lag.startswith(DIAGNOSIS_PREFIX):
+        found = lag_from_diagnosis(lag[len(DIAGNOSIS_PREFIX):])
+        if not args.quiet:
+            print(f"labrunner fit: {found.sentence()}", file=sys.stderr, flush=True)
+        lag = found.tau_s
+    elif lag is not None and lag != "auto":
         try:
             lag = float(lag)
         except ValueError:
-            raise UserError(f"--thermal-lag must be a time constant in s or 'auto', not {lag!r}") from None
+            raise UserError(f"--thermal-lag must be a time constant in s, 'auto' or {DIAGNOSIS_PREFIX}DIAG.json "
+                            f"(the thermal_lag finding of `labrunner diagnose --json`), not {lag!r}") from None
     return FitOptions(poly_order=order, poly_method=args.poly_method, rbf_variants=variants, rbf_export=export,
                       evaluate=not args.no_eval, splits=splits, seed=args.seed, thermal_lag_s=lag)
 

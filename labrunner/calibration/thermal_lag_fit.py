@@ -19,9 +19,11 @@ plain one on the held-out splits both ran and used only when it gains (`LagRepor
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -47,6 +49,9 @@ REFINE_STEPS = 8  # golden-section steps: the bracket shrinks to 0.618^8 ~ 2 % o
 # Held-out RMS of the exported model, lag-corrected over plain, must be below this (mean over the
 # triads and splits both ran) for the lag-corrected model to be used.
 USE_IF_RATIO_BELOW = 1.0
+# A gap in the log at least this many tau long restarts the filter (`lag_corrected_temperature`): the
+# filter's memory of the rows before it has decayed to exp(-1), and what the sensor did in it is unknown.
+RESTART_GAP_TAUS = 1.0
 
 
 @dataclass(frozen=True)
@@ -69,7 +74,8 @@ class TemperatureFilter:
     def to_dict(self) -> dict[str, Any]:
         return {"kind": FILTER_KIND, "tau_s": float(self.tau_s), "sample_period_s": float(self.sample_period_s),
                 "input": "imu_temp_c", "what": "dy/dt = (imu_temp_c - y) / tau_s, per run, started at the run's "
-                "first temperature; the model's temperature is y"}
+                "first temperature; the model's temperature is y. A log with a gap of tau_s or more restarts it "
+                "after the gap at x - slope * tau_s (a device filters without gaps)"}
 
     @classmethod
     def from_dict(cls, d: Any) -> TemperatureFilter:
@@ -96,7 +102,15 @@ def lag_corrected_temperature(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarr
     """The element temperature: the logged temperature through a first-order lag of `tau_s`, restarted
     (settled at its first temperature) at each run, as the device's filter starts at power-on. Rows are
     taken in time order within each run (the input need not be sorted); between rows the temperature is
-    taken as linear, which is exact on a ramp and what a log with gaps between records allows."""
+    taken as linear, which is exact on a ramp and what a log with short gaps between records allows.
+
+    A gap of at least `RESTART_GAP_TAUS` x tau_s (a log of records only: the chamber moved and soaked
+    between two temperatures, unlogged) is not bridged: a straight line over it would make the record
+    after it lag by (change / gap) x tau, behind a sensor that in fact soaked (about 0.5 C at the first
+    record of a soak after a 2 h move of 15 C), in heating and cooling alike with opposite signs. The
+    filter, which on a device runs through the gap, has forgotten its state there; it restarts at the
+    steady state of a line through the rows after the gap: x0 - r tau, with r their slope over tau_s
+    (0 on a soak; exact on a ramp)."""
     t = np.asarray(t_s, dtype=float)
     x = np.asarray(temp_c, dtype=float)
     out = np.empty_like(x)
@@ -109,12 +123,29 @@ def lag_corrected_temperature(t_s: np.ndarray, temp_c: np.ndarray, run: np.ndarr
     else:
         order = np.lexsort((t, runs))
     ts, xs, rs = t[order], x[order], runs[order]
-    cuts = np.flatnonzero(np.diff(rs)) + 1
+    new_run = np.diff(rs) != 0
+    gap = ~new_run & (np.diff(ts) >= RESTART_GAP_TAUS * tau_s)
+    cuts = np.flatnonzero(new_run | gap) + 1
+    restarts = set((np.flatnonzero(gap) + 1).tolist())
     ys = np.empty_like(xs)
     for a, b in zip(np.concatenate(([0], cuts)), np.concatenate((cuts, [xs.size])), strict=True):
-        ys[a:b] = first_order_lag(ts[a:b], xs[a:b], tau_s)
+        if a in restarts:
+            y0 = float(xs[a]) - _start_slope(ts[a:b], xs[a:b], tau_s) * tau_s
+            ys[a:b] = first_order_lag(ts[a:b], xs[a:b], tau_s, y0=y0, x0=float(xs[a]), t0=float(ts[a]))
+        else:
+            ys[a:b] = first_order_lag(ts[a:b], xs[a:b], tau_s)
     out[order] = ys
     return out
+
+
+def _start_slope(t: np.ndarray, x: np.ndarray, window_s: float) -> float:
+    """Least-squares slope (C/s) of the rows within `window_s` of the first (0 with fewer than two times)."""
+    n = int(np.searchsorted(t, t[0] + window_s, side="right"))
+    tt, xx = t[:n] - t[0], x[:n]
+    if n < 2 or tt[-1] <= 0:
+        return 0.0
+    dt = tt - tt.mean()
+    return float(np.dot(dt, xx - xx.mean()) / np.dot(dt, dt))
 
 
 def with_temperature(frame: pd.DataFrame, tau_s: float) -> pd.DataFrame:
@@ -122,6 +153,55 @@ def with_temperature(frame: pd.DataFrame, tau_s: float) -> pd.DataFrame:
     temp = lag_corrected_temperature(frame["t_s"].to_numpy(dtype=float), frame["imu_temp_c"].to_numpy(dtype=float),
                                      frame["run"].to_numpy(), tau_s)
     return frame.assign(imu_temp_c=temp)
+
+
+DIAGNOSIS_PREFIX = "from:"  # `fit --thermal-lag from:DIAG.json`: tau of the diagnosis's thermal_lag finding
+
+
+@dataclass(frozen=True)
+class DiagnosedLag:
+    """The thermal lag a diagnosis found (`labrunner diagnose --json`): its finding's tau and status."""
+
+    tau_s: float
+    status: str  # "selected", or "alternative" (confounded with a selected cause)
+    channels: list[str]
+    path: str
+
+    def sentence(self) -> str:
+        return (f"thermal lag tau = {self.tau_s:.1f} s from the diagnosis {self.path} (finding thermal_lag, "
+                f"{self.status}, channels {', '.join(self.channels) or '?'})")
+
+
+def lag_from_diagnosis(path: str | Path) -> DiagnosedLag:
+    """The `thermal_lag` finding of a diagnosis JSON (`findings[].cause == "thermal_lag"`,
+    `parameters.tau_s`): the selected one, else an alternative; a one-line `UserError` otherwise."""
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise UserError(f"--thermal-lag {DIAGNOSIS_PREFIX}{p}: no such file") from None
+    except IsADirectoryError:
+        raise UserError(f"--thermal-lag {DIAGNOSIS_PREFIX}{p}: is a directory; expected the JSON of "
+                        "`labrunner diagnose --json`") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"--thermal-lag {DIAGNOSIS_PREFIX}{p}: not JSON ({exc}); expected the JSON of "
+                        "`labrunner diagnose --json`") from None
+    findings = doc.get("findings") if isinstance(doc, dict) else None
+    if not isinstance(findings, list):
+        raise UserError(f"--thermal-lag {DIAGNOSIS_PREFIX}{p}: no 'findings' list; expected the JSON of "
+                        "`labrunner diagnose --json`")
+    lags = [f for f in findings if isinstance(f, dict) and f.get("cause") == "thermal_lag"]
+    if not lags:
+        causes = ", ".join(str(f.get("cause")) for f in findings if isinstance(f, dict)) or "none"
+        raise UserError(f"--thermal-lag {DIAGNOSIS_PREFIX}{p}: the diagnosis found no thermal_lag (its findings: "
+                        f"{causes}); give a time constant or 'auto'")
+    best = next((f for f in lags if f.get("status") == "selected"), lags[0])
+    tau = (best.get("parameters") or {}).get("tau_s")
+    if isinstance(tau, bool) or not isinstance(tau, int | float) or not (0.0 < float(tau) <= MAX_TAU_S):
+        raise UserError(f"--thermal-lag {DIAGNOSIS_PREFIX}{p}: the thermal_lag finding's parameters.tau_s is "
+                        f"{tau!r}, not a time constant in (0, {MAX_TAU_S:g}] s")
+    return DiagnosedLag(float(tau), str(best.get("status", "?")), [str(c) for c in best.get("channels") or []],
+                        str(p))
 
 
 @dataclass

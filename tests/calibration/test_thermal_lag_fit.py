@@ -249,3 +249,40 @@ def test_without_a_lag_the_search_finds_none_worth_using():
     assert rep is not None
     assert rep.tau_s < 30.0 or not rep.used, rep.to_dict()
     assert res.temperature_filter is None or rep.tau_s < 30.0
+
+
+def _move_and_soak(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A sensor moved between soaks (1 s rows, the whole history) and which rows a log of records keeps:
+    three 60 s records at the end of each soak, nothing while the chamber moves and the IMU settles."""
+    t = np.arange(0.0, 6 * 7200.0, 1.0)
+    setpoints = np.array([-20.0, -5.0, 10.0, 25.0, 40.0, 55.0])
+    k = (t // 7200).astype(int)
+    since = t - 7200.0 * k
+    prev = np.concatenate(([setpoints[0]], setpoints[:-1]))[k]
+    sensor = setpoints[k] + (prev - setpoints[k]) * np.exp(-since / 600.0)  # the case approaches its setpoint
+    sensor += rng.normal(0.0, 0.002, t.size)
+    logged = since >= 7200.0 - 3 * 70.0
+    logged &= (since % 70.0) < 60.0  # 10 s of table settling between the records, unlogged
+    return t, sensor, logged
+
+
+def test_a_log_of_soaked_records_is_not_bridged_by_a_line_across_the_unlogged_moves():
+    t, sensor, logged = _move_and_soak(np.random.default_rng(4))
+    element = first_order_lag(t, sensor, 240.0)  # what the element did: the filter through the whole history
+    got = lag_corrected_temperature(t[logged], sensor[logged], None, 240.0)
+    # A line across the 2 h moves puts the first record of every soak ~0.5 C behind its soaked sensor.
+    bridged = first_order_lag(t[logged], sensor[logged], 240.0)
+    assert np.abs(bridged - element[logged]).max() > 0.3
+    assert np.abs(got - element[logged]).max() < 0.01
+
+
+def test_a_ramp_logged_with_gaps_keeps_its_lag_across_long_gaps_too():
+    t = np.arange(0.0, 20000.0, 1.0)
+    temp = -10.0 + 0.33 / 60.0 * t
+    element = first_order_lag(t, temp, 240.0)
+    for gap_s in (7.0, 600.0):  # gaps shorter than tau are bridged; longer ones restart on the ramp's slope
+        logged = (t % (10.0 + gap_s)) < 10.0
+        got = lag_corrected_temperature(t[logged], temp[logged], None, 240.0)
+        late = t[logged] > 2400.0  # the element settled on the slope (10 tau)
+        assert np.abs(got - element[logged])[late].max() < 1e-3, gap_s
+        assert np.abs(got - (temp[logged] - 0.33 / 60.0 * 240.0))[late].max() < 1e-3, gap_s
