@@ -104,8 +104,6 @@ def main() -> int:
     parser.add_argument("--report", action="store_true", help="also draw the report")
     parser.add_argument("--hog", action="store_true", help="beside a second process spinning on one core")
     args = parser.parse_args()
-    if not args.db.is_file():
-        parser.error(f"{args.db}: no such store")
     tracemalloc.start()
     instrument()
     from labrunner import api
@@ -113,6 +111,7 @@ def main() -> int:
     from labrunner.discrepancy.diagnose import DiagnoseOptions, diagnose
     from labrunner.discrepancy.measurements import Measurements
     from labrunner.discrepancy.summary import read_store_summary
+    from labrunner.errors import UserError
 
     print(f"before: {load_line()}{', CPU hog' if args.hog else ''}")
     with cpu_hog(args.hog):
@@ -121,13 +120,21 @@ def main() -> int:
             held, _ = tracemalloc.get_traced_memory()
             tracemalloc.reset_peak()
             c1 = time.process_time()
-            frame = api.load_data(args.db, include_monitor=True).frame
+            try:
+                frame = api.load_data(args.db, include_monitor=True).frame
+            except UserError as exc:
+                print(f"bench_diagnose_stages: {exc}", file=sys.stderr)
+                return 1
             STATS["read store (one frame)"] = [1, time.process_time() - c1,
                                                tracemalloc.get_traced_memory()[1] - held]
             meas = Measurements.from_frame(frame)
             del frame
         else:
-            stored = read_store_summary(args.db)
+            try:
+                stored = read_store_summary(args.db)
+            except UserError as exc:  # not a store, no such file, no samples yet: one line, no traceback
+                print(f"bench_diagnose_stages: {exc}", file=sys.stderr)
+                return 1
             meas = Measurements.from_frame(stored.frame, stored.summary)
             del stored
         result = diagnose(meas, DiagnoseOptions())
