@@ -225,8 +225,9 @@ def gain_figure(diagnosis: Diagnosis) -> Figure:
 
 
 def allan_figure(diagnosis: Diagnosis) -> Figure:
-    """Allan deviation of the residuals per channel: measured, and the simulator's before (white noise
-    only) and after (the fitted noise model), both seen through the same fit as the data."""
+    """Allan deviation of the residuals per channel: measured with its 68 % interval (a band), and the
+    simulator's before (white noise only) and after (the fitted noise model), both seen through the same
+    fit as the data."""
     import matplotlib.pyplot as plt
 
     fit = diagnosis.allan
@@ -234,6 +235,11 @@ def allan_figure(diagnosis: Diagnosis) -> Figure:
     fig, axes = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
     for i, (ax, c) in enumerate(zip(axes.flat, CHANNELS)):
         k = _SCALE[c]
+        if fit.measured.low is not None and fit.measured.high is not None:
+            # Drawn first, under the curves: where the band is wider than +-20 % the target meets the
+            # measurement's own scatter (few independent differences at the top octaves).
+            ax.fill_between(fit.measured.tau_s, fit.measured.low[:, i] * k, fit.measured.high[:, i] * k,
+                            color=_BASELINE, alpha=0.3, lw=0, label="measured, 68 % interval (Greenhall EDF)")
         ax.loglog(fit.measured.tau_s, fit.measured.adev[:, i] * k, "o-", color=_BASELINE, label="measured residual")
         ax.loglog(fit.before.tau_s, fit.before.adev[:, i] * k, ":", color="0.5", label="simulator before (white only)")
         ax.loglog(fit.after.tau_s, fit.after.adev[:, i] * k, "-", color=_EXTENDED, lw=1.0,

@@ -186,3 +186,30 @@ def test_a_top_octave_miss_is_the_measured_curves_own_scatter():
     for j, i in missed:
         assert abs(fit.measured.adev[j, i] / true_curve[j, i] - 1.0) > TARGET, (taus[j], CHANNELS[i])
     assert np.all(np.abs(fit.after.adev / true_curve - 1.0) <= TARGET)
+
+
+def test_the_allan_plot_draws_the_measured_interval_and_both_simulated_curves(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.collections import PolyCollection
+
+    from labrunner.discrepancy.report import allan_figure
+
+    frame, _ = log_like(8, 12, continuous=True)
+    result = diagnose(frame)
+    fit = result.allan
+    assert fit is not None and fit.measured.low is not None and fit.measured.high is not None
+    fig = allan_figure(result)
+    for i, ax in enumerate(fig.axes[:6]):
+        bands = [c for c in ax.collections if isinstance(c, PolyCollection)]
+        assert len(bands) == 1, CHANNELS[i]
+        scale = 1000.0 if CHANNELS[i].startswith("accel") else 1.0
+        ys = bands[0].get_paths()[0].vertices[:, 1]
+        # The band spans the interval: its lowest and highest points are the interval's.
+        assert ys.min() == pytest.approx(fit.measured.low[:, i].min() * scale, rel=1e-9)
+        assert ys.max() == pytest.approx(fit.measured.high[:, i].max() * scale, rel=1e-9)
+        labels = [line.get_label() for line in ax.get_lines()]
+        assert labels == ["measured residual", "simulator before (white only)", "simulator after (fitted noise model)"]
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert "measured, 68 % interval (Greenhall EDF)" in legend
