@@ -171,3 +171,28 @@ def test_a_soak_campaigns_records_are_compensated_at_the_soaked_element_temperat
     sensor_off = np.abs(frame.imu_temp_c.to_numpy() - element[j]).max()
     assert sensor_off < 0.06
     assert np.abs(got - element[j]).max() < sensor_off + 0.01
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # a dry run, a diagnosis and two fits: past 300 s on the loaded 2-core machine
+def test_fit_takes_tau_from_the_diagnosis_json(tmp_path):
+    """`fit --thermal-lag from:DIAG.json`: the thermal_lag finding `labrunner diagnose --json` wrote."""
+    sim = tmp_path / "sim.json"
+    sim.write_text(json.dumps({"seed": 5, "imu_model": {"effects": {"thermal_lag": {"tau_s": 240.0}}}}))
+    db, diag, fit = tmp_path / "c.db", tmp_path / "d.json", tmp_path / "f.json"
+    cli("run", ROOT / "procedures" / "quick.yaml", "--sim", "--sim-config", sim, "--db", db, "--quiet", check=0)
+    cli("diagnose", db, "--json", diag, check=0)
+    found = next(f for f in json.loads(diag.read_text())["findings"] if f["cause"] == "thermal_lag")
+    p = cli("fit", db, "--no-store", "--no-eval", "--rbf", "", "--thermal-lag", f"from:{diag}", "--json", fit,
+            check=0, timeout=600)
+    assert f"thermal lag tau = {found['parameters']['tau_s']:.1f} s from the diagnosis {diag}" in p.stderr
+    lag = json.loads(fit.read_text())["thermal_lag"]
+    assert lag["tau_s"] == pytest.approx(found["parameters"]["tau_s"]) and lag["source"] == "configured"
+    # A diagnosis without the finding, a missing file, a file that is not a diagnosis: one line each.
+    none = tmp_path / "none.json"
+    none.write_text(json.dumps({**json.loads(diag.read_text()), "findings": []}))
+    (tmp_path / "x.json").write_text("{not json")
+    for arg, msg in ((none, "the diagnosis found no thermal_lag"), (tmp_path / "nope.json", "no such file"),
+                     (tmp_path / "x.json", "not JSON")):
+        p = cli("fit", db, "--no-store", "--thermal-lag", f"from:{arg}", check=2)
+        assert msg in p.stderr and "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
