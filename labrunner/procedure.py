@@ -73,6 +73,8 @@ RANGES: dict[str, Range] = {
     "soak.predict_horizon_s": Range(1.0, 86400.0, "s"),
     "soak.predict_tau_max_s": Range(10.0, 7 * 86400.0, "s"),
     "soak.predict_tolerance_c": Range(0.01, 10.0, "C"),
+    "soak.predict_lag_s": Range(1.0, 86400.0, "s"),
+    "soak.predict_lag_tolerance_c": Range(0.001, 10.0, "C"),
     "ramp.c_per_min": Range(0.01, 10.0, "C/min"),
     "ramp.bin_c": Range(0.1, 20.0, "C"),
     "ramp.end_hold_s": Range(0.0, 86400.0, "s"),
@@ -161,6 +163,11 @@ class Soak(_Strict):
     predict_horizon_s: float | None = Field(None, gt=0)
     predict_model: Literal["single", "double"] = "single"
     predict_tau_max_s: float = Field(7200.0, gt=0)
+    # the sensing element's lag behind the IMU temperature sensor (s): the prediction then also holds the
+    # element's mean offset from the reading over the horizon to predict_lag_tolerance_c (default
+    # predict_tolerance_c)
+    predict_lag_s: float | None = Field(None, gt=0)
+    predict_lag_tolerance_c: float | None = Field(None, gt=0)
 
     @model_validator(mode="after")
     def _window_fits(self) -> Soak:
@@ -175,6 +182,8 @@ class Soak(_Strict):
                 raise ValueError("predict_window_s must not exceed max_wait_s")
             if self.predict_window_s < 8 * self.poll_s:
                 raise ValueError("predict_window_s must hold at least 8 polls (8 * poll_s)")
+        elif self.predict_lag_s is not None or self.predict_lag_tolerance_c is not None:
+            raise ValueError("predict_lag_s and predict_lag_tolerance_c apply to criterion: predictive")
         return self
 
 

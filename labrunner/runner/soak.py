@@ -9,7 +9,11 @@ With `criterion: predictive` the IMU part is judged by extrapolation instead
 at most the last `predict_window_s`, with the chamber within `tolerance_c` over the readings fitted,
 the fitted approach of the IMU temperature must predict less than `predict_tolerance_c` (default
 `tolerance_c`) of change over the horizon (`predict_horizon_s`, by default the procedure's `record_s`),
-confidence bound included. A fit that gives no prediction switches that soak to the spread criterion
+confidence bound included. With `predict_lag_s` (the sensing element's lag behind the IMU's temperature
+sensor, e.g. the diagnosis's thermal_lag finding) the element's predicted mean offset from the reading
+over the horizon must also be within `predict_lag_tolerance_c` (default `predict_tolerance_c`): a record
+is tagged with the sensor's temperature, so a soak ended while the reading still moves records an element
+that is lag x rate behind it. A fit that gives no prediction switches that soak to the spread criterion
 for good (`SoakWindow.fallback`).
 """
 
@@ -107,6 +111,9 @@ class SoakWindow:
         self.predictive = soak.criterion == "predictive"
         # What the predicted drift over the horizon is held to; the chamber keeps tolerance_c.
         self.predict_tolerance_c = soak.predict_tolerance_c or soak.tolerance_c
+        # What the element's predicted offset from the reading is held to (predict_lag_s only).
+        self.predict_lag_s = soak.predict_lag_s or 0.0
+        self.predict_lag_tolerance_c = soak.predict_lag_tolerance_c or self.predict_tolerance_c
         self.prediction: ApproachFit | None = None  # the newest fit (predictive criterion)
         self.fallback: str | None = None  # why this soak fell back to the spread criterion
         self._keep_s = max(soak.stable_window_s, soak.predict_window_s if self.predictive else 0.0)
@@ -150,7 +157,7 @@ class SoakWindow:
         if len(window) < MIN_READINGS:
             return False
         fit = fit_approach([r.t_s for r in window], [r.imu_c for r in window], self.horizon_s,
-                           s.predict_tau_max_s, s.predict_model)
+                           s.predict_tau_max_s, s.predict_model, self.predict_lag_s)
         if isinstance(fit, NoFit):
             if window[-1].t_s - window[0].t_s < s.predict_window_s - s.poll_s - _EPS_S:
                 self.prediction = None  # a short window may not resolve the approach yet: wait for more
@@ -163,7 +170,8 @@ class SoakWindow:
         off = abs(window[-1].chamber_c - self.setpoint_c)
         fit = replace(fit, chamber_drift_c=off * -math.expm1(-self.horizon_s / fit.tau_s))
         self.prediction = fit
-        return off <= s.tolerance_c * _CHAMBER_BAND and fit.drift_bound_c <= self.predict_tolerance_c
+        return (off <= s.tolerance_c * _CHAMBER_BAND and fit.drift_bound_c <= self.predict_tolerance_c
+                and fit.lag_bound_c <= self.predict_lag_tolerance_c)
 
     def _spread_stable(self) -> bool:
         """Stable once the soak has lasted a window and every reading of the last window holds."""

@@ -22,12 +22,14 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
+
+from labrunner.imu.recursions import first_order_lag
 
 log = logging.getLogger(__name__)
 
@@ -54,10 +56,19 @@ class ApproachFit:
     drift_sigma_c: float  # its standard error
     horizon_s: float
     chamber_drift_c: float = 0.0  # what the air still off its setpoint adds over the horizon (the caller's)
+    # With a sensing element lagging the temperature sensor by lag_s: its mean offset from the reading
+    # over the horizon (what a record tagged with the sensor's temperature is off by), and its error.
+    lag_s: float = 0.0
+    lag_c: float = 0.0
+    lag_sigma_c: float = 0.0
 
     @property
     def drift_bound_c(self) -> float:
         return self.drift_c + SIGMAS * self.drift_sigma_c + self.chamber_drift_c
+
+    @property
+    def lag_bound_c(self) -> float:
+        return self.lag_c + SIGMAS * self.lag_sigma_c
 
     @property
     def tau_s(self) -> float:
@@ -67,9 +78,11 @@ class ApproachFit:
     def describe(self) -> str:
         taus = " and ".join(f"{t:.0f}" for t in self.taus_s)
         chamber = f", chamber +{self.chamber_drift_c:.3f} C" if self.chamber_drift_c else ""
+        lag = (f", element {self.lag_c:.3f} C off the reading (bound {self.lag_bound_c:.3f} C, lag "
+               f"{self.lag_s:.0f} s)" if self.lag_s else "")
         return (f"predicted drift {self.drift_c:.3f} C (bound {self.drift_bound_c:.3f} C: +{SIGMAS:g} sigma{chamber}) "
                 f"over the "
-                f"next {self.horizon_s:.0f} s, tau {taus} s, fit over {self.span_s:.0f} s ({self.n} readings, "
+                f"next {self.horizon_s:.0f} s{lag}, tau {taus} s, fit over {self.span_s:.0f} s ({self.n} readings, "
                 f"rms {self.rms_c:.3f} C)")
 
     def detail(self) -> dict[str, float | int | str]:
@@ -77,7 +90,8 @@ class ApproachFit:
                 "predicted_drift_bound_c": round(self.drift_bound_c, 5), "tau_s": round(self.tau_s, 1),
                 "fit_window_s": round(self.span_s, 1), "fit_readings": self.n, "fit_rms_c": round(self.rms_c, 5),
                 "horizon_s": self.horizon_s, "model": self.model, "equilibrium_c": round(self.equilibrium_c, 4),
-                "chamber_drift_c": round(self.chamber_drift_c, 5)}
+                "chamber_drift_c": round(self.chamber_drift_c, 5), "lag_s": self.lag_s,
+                "predicted_lag_c": round(self.lag_c, 5), "predicted_lag_bound_c": round(self.lag_bound_c, 5)}
 
 
 @dataclass(frozen=True)
@@ -111,6 +125,39 @@ def _gains(taus: Sequence[float], horizon_s: float) -> list[np.ndarray]:
     """Weights on the amplitudes (c first) of the two drift forms (`_drift`)."""
     return [np.array([0.0] + [1.0 - math.exp(-horizon_s / tau) for tau in taus]),
             np.array([0.0] + [min(horizon_s / tau, 1.0) for tau in taus])]
+
+
+def _lag_gain(tau_s: float, t0_s: float, horizon_s: float, lag_s: float) -> float:
+    """The mean over the horizon of (reading - element) for a unit component exp(-t / tau) of the reading.
+
+    The element follows the reading through a first-order lag of `lag_s`; it is started at the window's
+    first reading (`t0_s` < 0) where a first-order lag of a slow approach sits, lag x rate behind the
+    reading (its own transient from before the window decays as exp(-t / lag) and is small by the
+    horizon once the window is a few lags long). Exact for the exponential between readings (a fine grid
+    and the filter's first-order hold): no 1 / (tau - lag) singularity where the two time constants meet."""
+    step = max(min(horizon_s / 30.0, lag_s / 10.0, 5.0), 1e-3)
+    n_past = max(int(math.ceil(-t0_s / step)), 1) + 1
+    grid = np.concatenate([np.linspace(t0_s, 0.0, n_past), np.linspace(0.0, horizon_s, 31)[1:]])
+    x = np.exp(-grid / tau_s)
+    element = first_order_lag(grid, x, lag_s, y0=float(x[0] * (1.0 + lag_s / tau_s)), x0=float(x[0]),
+                              t0=float(grid[0]))
+    future = grid >= 0.0
+    return float(np.mean((x - element)[future]))
+
+
+def _lag_gains(t0_s: float, horizon_s: float, lag_s: float) -> Callable[[Sequence[float]], list[np.ndarray]]:
+    """Weights on the amplitudes (c first: a constant has no offset) of the element's mean offset, per set
+    of time constants; one filter run per time constant (the profile's grid repeats them)."""
+    cache: dict[float, float] = {}
+
+    def gains(taus: Sequence[float]) -> list[np.ndarray]:
+        out = [0.0]
+        for tau in taus:
+            if tau not in cache:
+                cache[tau] = _lag_gain(tau, t0_s, horizon_s, lag_s)
+            out.append(cache[tau])
+        return [np.array(out)]
+    return gains
 
 
 def _drift(p: np.ndarray, horizon_s: float) -> float:
@@ -153,21 +200,22 @@ def _search_double(t: np.ndarray, y: np.ndarray, lo: float, hi: float) -> tuple[
 
 
 def fit_approach(t_s: Sequence[float], temp_c: Sequence[float], horizon_s: float, tau_max_s: float,
-                 model: ApproachModel = "single") -> ApproachFit | NoFit:
-    """Fit the approach over the readings given (time order) and predict the drift over `horizon_s`.
+                 model: ApproachModel = "single", lag_s: float = 0.0) -> ApproachFit | NoFit:
+    """Fit the approach over the readings given (time order) and predict the drift over `horizon_s`;
+    with `lag_s` > 0 also the mean offset over it of a sensing element lagging the readings by `lag_s`.
 
     With `double`, a window in which the faster component has died out (the two-constant fit is
     degenerate) is fitted with one time constant: that is the approach left to predict."""
-    fit = _fit(t_s, temp_c, horizon_s, tau_max_s, model)
+    fit = _fit(t_s, temp_c, horizon_s, tau_max_s, model, lag_s)
     if isinstance(fit, NoFit) and model == "double":
-        single = _fit(t_s, temp_c, horizon_s, tau_max_s, "single")
+        single = _fit(t_s, temp_c, horizon_s, tau_max_s, "single", lag_s)
         if isinstance(single, ApproachFit):
             return single
     return fit
 
 
 def _fit(t_s: Sequence[float], temp_c: Sequence[float], horizon_s: float, tau_max_s: float,
-         model: ApproachModel) -> ApproachFit | NoFit:
+         model: ApproachModel, lag_s: float = 0.0) -> ApproachFit | NoFit:
     t = np.asarray(t_s, float)
     y = np.asarray(temp_c, float)
     keep = np.isfinite(t) & np.isfinite(y)
@@ -228,16 +276,25 @@ def _fit(t_s: Sequence[float], temp_c: Sequence[float], horizon_s: float, tau_ma
     # the largest drift + SIGMAS linear sigmas over every set of time constants the readings do not
     # reject (profile likelihood: SSE within a factor exp(SIGMAS^2 / n) of the best), so a slower
     # approach the window cannot exclude keeps the soak going.
-    profile = _profile_bound(t, y, taus, sse, lo, hi, horizon_s)
+    profile = _profile_bound(t, y, taus, sse, lo, hi, lambda ts: _gains(ts, horizon_s))
     sigma = max(sigma, (profile - drift) / SIGMAS)
+    lag = lag_sigma = 0.0
+    if lag_s > 0:
+        # The element's offset is linear in the amplitudes for given time constants: its bound is the
+        # same profile over the time constants the readings do not reject.
+        lag_gains = _lag_gains(float(t[0]), horizon_s, lag_s)
+        lag = abs(float(lag_gains(taus)[0] @ coef))
+        lag_sigma = max(_profile_bound(t, y, taus, sse, lo, hi, lag_gains) - lag, 0.0) / SIGMAS
     return ApproachFit(model=model, equilibrium_c=float(p[0]), amplitudes_c=tuple(float(a) for a in p[1::2]),
                        taus_s=tuple(float(v) for v in taus), rms_c=math.sqrt(sse / len(t)), n=len(t), span_s=span,
-                       drift_c=drift, drift_sigma_c=sigma, horizon_s=horizon_s)
+                       drift_c=drift, drift_sigma_c=sigma, horizon_s=horizon_s, lag_s=lag_s, lag_c=lag,
+                       lag_sigma_c=lag_sigma)
 
 
 def _profile_bound(t: np.ndarray, y: np.ndarray, best: Sequence[float], sse_min: float, lo: float, hi: float,
-                   horizon_s: float) -> float:
-    """max over the time constants not rejected of |predicted drift| + SIGMAS sigma (linear parameters)."""
+                   gains: Callable[[Sequence[float]], list[np.ndarray]]) -> float:
+    """max over the time constants not rejected of |g . (c, a...)| + SIGMAS sigma (linear parameters), for
+    each weight vector g that `gains` gives for them (the drift's forms, or the element's offset)."""
     n = len(t)
     limit = sse_min * math.exp(SIGMAS ** 2 / n)
     grid = np.geomspace(lo, hi, _GRID if len(best) == 1 else _GRID // 2)
@@ -258,7 +315,7 @@ def _profile_bound(t: np.ndarray, y: np.ndarray, best: Sequence[float], sse_min:
         except np.linalg.LinAlgError:
             continue
         s2 = sse_min / max(n - 1 - 2 * len(taus), 1)
-        for g in _gains(taus, horizon_s):
+        for g in gains(taus):
             var = float(g @ inv @ g) * s2
             bound = max(bound, abs(float(g @ coef)) + SIGMAS * math.sqrt(max(var, 0.0)))
     return bound
