@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from .compensation import compensate
+from .compensation import Compensated, compensate
 from .ins import InsErrors, ins_errors, window_rows
 from .px4_reference import Px4Reference, fit_px4
 from .rbf_model import RbfModel
@@ -137,23 +137,93 @@ class SplitResult:
         return out
 
 
-def _static_check(values: np.ndarray, ref: np.ndarray, static_rows: np.ndarray, labels: np.ndarray) -> StaticCheck:
-    v = values[static_rows]
-    lab = labels[static_rows]
-    if v.shape[0] == 0:
-        return StaticCheck(*(np.nan,) * 6, n=0)
-    an = np.linalg.norm(v[:, :3], axis=1) - 1.0
-    gn = np.linalg.norm(v[:, 3:], axis=1)
-    uniq, inv = np.unique(lab, return_inverse=True)
-    cnt = np.bincount(inv).astype(float)
-    mean_v = np.column_stack([np.bincount(inv, weights=v[:, j]) for j in range(6)]) / cnt[:, None]
-    ra = np.linalg.norm(mean_v[:, :3], axis=1) - 1.0
-    rg = np.linalg.norm(mean_v[:, 3:], axis=1)
-    return StaticCheck(float(an.mean()), float(an.std()), float(gn.mean()), float(gn.std()),
-                       float(np.sqrt(np.mean(ra ** 2))), float(np.sqrt(np.mean(rg ** 2))), n=int(v.shape[0]))
+class _Moments:
+    """Running count, mean, standard deviation and RMS of columns fed in chunks.
+
+    The sums are taken about a shift (the first chunk's mean), so the variance does not lose the
+    digits a raw sum of squares would when the mean is large against the spread."""
+
+    def __init__(self, width: int) -> None:
+        self.n = 0
+        self.shift = np.zeros(width)
+        self.s1 = np.zeros(width)
+        self.s2 = np.zeros(width)
+        self.sq = np.zeros(width)
+
+    def add(self, x: np.ndarray) -> None:
+        if x.shape[0] == 0:
+            return
+        if self.n == 0:
+            self.shift = x.mean(axis=0)
+        d = x - self.shift
+        self.n += x.shape[0]
+        self.s1 += d.sum(axis=0)
+        self.s2 += np.einsum("ij,ij->j", d, d)
+        self.sq += np.einsum("ij,ij->j", x, x)
+
+    def stats(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(mean, std, rms), NaN without data."""
+        if self.n == 0:
+            nan = np.full(self.s1.shape, np.nan)
+            return nan, nan, nan
+        m1 = self.s1 / self.n
+        return self.shift + m1, np.sqrt(np.maximum(self.s2 / self.n - m1 ** 2, 0.0)), np.sqrt(self.sq / self.n)
+
+
+class _Scores:
+    """One model's running sums over a split's held-out rows, fed chunk by chunk: sample moments,
+    per-record error sums, static norms and per-record static means, extrapolated rows."""
+
+    def __init__(self, n_records: int) -> None:
+        self.samples = _Moments(6)
+        self.rec_sum = np.zeros((n_records, 6))
+        self.rec_cnt = np.zeros(n_records)
+        self.norms = _Moments(2)  # |accel| - 1 g, |rate| of static rows
+        self.static_sum = np.zeros((n_records, 6))
+        self.static_cnt = np.zeros(n_records)
+        self.extrapolated = 0
+        self.n = 0
+
+    def add(self, values: np.ndarray, err: np.ndarray, extrap: np.ndarray, lab: np.ndarray,
+            static: np.ndarray) -> None:
+        n_rec = self.rec_cnt.size
+        self.n += err.shape[0]
+        self.extrapolated += int(np.count_nonzero(extrap))
+        self.samples.add(err)
+        self.rec_cnt += np.bincount(lab, minlength=n_rec)
+        for j in range(6):
+            self.rec_sum[:, j] += np.bincount(lab, weights=err[:, j], minlength=n_rec)
+        v = values[static]
+        if v.shape[0] == 0:
+            return
+        ls = lab[static]
+        self.norms.add(np.column_stack([np.linalg.norm(v[:, :3], axis=1) - 1.0, np.linalg.norm(v[:, 3:], axis=1)]))
+        self.static_cnt += np.bincount(ls, minlength=n_rec)
+        for j in range(6):
+            self.static_sum[:, j] += np.bincount(ls, weights=v[:, j], minlength=n_rec)
+
+    def sample_stats(self) -> ErrorStats:
+        mean, std, rms = self.samples.stats()
+        return ErrorStats(mean, std, rms, self.samples.n)
+
+    def record_stats(self) -> ErrorStats:
+        seen = self.rec_cnt > 0
+        return ErrorStats.of(self.rec_sum[seen] / self.rec_cnt[seen, None])
+
+    def static_check(self) -> StaticCheck:
+        if self.norms.n == 0:
+            return StaticCheck(*(np.nan,) * 6, n=0)
+        mean, std, _ = self.norms.stats()
+        seen = self.static_cnt > 0
+        mean_v = self.static_sum[seen] / self.static_cnt[seen, None]
+        ra = np.linalg.norm(mean_v[:, :3], axis=1) - 1.0
+        rg = np.linalg.norm(mean_v[:, 3:], axis=1)
+        return StaticCheck(float(mean[0]), float(std[0]), float(mean[1]), float(std[1]),
+                           float(np.sqrt(np.mean(ra ** 2))), float(np.sqrt(np.mean(rg ** 2))), n=self.norms.n)
 
 
 Scored = PolyModel | RbfModel | Px4Reference
+SCORE_CHUNK = 1 << 18  # held-out rows scored per pass: every model's temporaries stay a few MB
 
 
 def _take(a: dict[str, Any], rows: np.ndarray) -> dict[str, np.ndarray]:
@@ -162,9 +232,12 @@ def _take(a: dict[str, Any], rows: np.ndarray) -> dict[str, np.ndarray]:
     return {k: a[k][idx] for k in ("y", "temp", "orientation", "rate", "run")}
 
 
-def _apply(model: Scored | None, a: dict[str, Any], rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _apply(model: Scored | None, a: dict[str, Any], rows: np.ndarray | None = None,
+           done: dict[int, Compensated] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Compensated outputs of the given rows (all of `a`'s: None) and their extrapolation flags (model
-    None: the raw data)."""
+    None: the raw data). `done` keeps the polynomials' compensations of these rows (by model id): the
+    hybrid network starts from its base polynomial's, which is scored itself. Callers must not modify
+    the arrays returned."""
     if rows is not None:
         a = _take(a, rows)
     y, temp = a["y"], a["temp"]
@@ -172,44 +245,74 @@ def _apply(model: Scored | None, a: dict[str, Any], rows: np.ndarray | None = No
         return y, np.zeros(y.shape[0], dtype=bool)
     if isinstance(model, Px4Reference):
         return model.compensate_rows(y, temp, a["orientation"]), np.zeros(y.shape[0], dtype=bool)
-    comp = compensate(model, y, temp)
+    done = {} if done is None else done
+    if isinstance(model, PolyModel):
+        if id(model) not in done:
+            done[id(model)] = compensate(model, y, temp)
+        comp = done[id(model)]
+    else:
+        base = done.get(id(model.base)) if model.base is not None else None
+        if model.base is not None and base is None:
+            base = done[id(model.base)] = compensate(model.base, y, temp)
+        comp = model.compensate(y, temp, base=base)
     return comp.values, comp.extrapolated
 
 
-def _run_offsets(model: Scored | None, sub: dict[str, np.ndarray]) -> dict[int, np.ndarray]:
-    """Mean error (6,) of a model on the training rows `sub` (`_take`) of each run: its offset at that
-    power-on."""
+def _run_offsets(model: Scored | None, sub: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Runs (R,) and the mean error (R, 6) of a model on the training rows `sub` (`_take`) of each run:
+    its offset at that power-on."""
     values, _ = _apply(model, sub)
     err = values - reference_values(sub["orientation"], sub["rate"])
-    run = sub["run"]
-    return {int(r): err[run == r].mean(axis=0) for r in np.unique(run)}
+    runs, inv = np.unique(sub["run"], return_inverse=True)
+    cnt = np.bincount(inv, minlength=runs.size).astype(float)
+    sums = np.column_stack([np.bincount(inv, weights=err[:, j], minlength=runs.size) for j in range(6)])
+    return runs, sums / cnt[:, None]
+
+
+def _remove_offsets(err: np.ndarray, run: np.ndarray, offsets: tuple[np.ndarray, np.ndarray]) -> None:
+    """Subtract each row's run offset (rows of runs without one keep their error)."""
+    runs, off = offsets
+    if runs.size == 0:
+        return
+    pos = np.minimum(np.searchsorted(runs, run), runs.size - 1)
+    has = runs[pos] == run
+    err[has] -= off[pos[has]]
 
 
 def score(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
-          result: SplitResult, offset_rows: np.ndarray | None = None) -> None:
+          result: SplitResult, offset_rows: np.ndarray | None = None, chunk: int = SCORE_CHUNK) -> None:
     """Fill `result` with the errors of raw data and every model on the given rows. With `offset_rows`
-    (training rows), each model's mean error per run over them is removed from its errors in that run."""
-    sub = _take(a, rows)
-    offset_sub = _take(a, offset_rows) if offset_rows is not None else {}
-    ref = reference_values(sub["orientation"], sub["rate"])
-    lab = labels[rows]
-    static = np.abs(sub["rate"]) < STATIC_RATE_DPS
-    uniq, inv = np.unique(lab, return_inverse=True)
-    cnt = np.bincount(inv, minlength=uniq.size).astype(float)
-    result.n_test_rows = int(rows.sum()) if rows.dtype == bool else int(rows.size)
-    run = sub["run"]
-    for name, model in {"raw": None, **models}.items():
-        values, extrap = _apply(model, sub)
+    (training rows), each model's mean error per run over them is removed from its errors in that run.
+
+    The rows are scored `chunk` at a time into running sums (no held-out error array is kept)."""
+    idx = np.flatnonzero(rows) if rows.dtype == bool else np.asarray(rows, dtype=np.int64)
+    result.n_test_rows = int(idx.size)
+    scored: dict[str, Scored | None] = {"raw": None, **models}
+    offsets: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    if offset_rows is not None:
+        offset_sub = _take(a, offset_rows)
+        offsets = {name: _run_offsets(model, offset_sub) for name, model in scored.items()}
+    n_rec = int(labels.max()) + 1 if labels.size else 0
+    sums = {name: _Scores(n_rec) for name in scored}
+    for lo in range(0, idx.size, chunk):
+        part = idx[lo:lo + chunk]
+        sub = _take(a, part)
+        ref = reference_values(sub["orientation"], sub["rate"])
+        lab = labels[part]
+        static = np.abs(sub["rate"]) < STATIC_RATE_DPS
+        done: dict[int, Compensated] = {}
+        for name, model in scored.items():
+            values, extrap = _apply(model, sub, done=done)
+            err = values - ref
+            if name in offsets:
+                _remove_offsets(err, sub["run"], offsets[name])
+            sums[name].add(values, err, extrap, lab, static)
+    for name, acc in sums.items():
         if name != "raw":
-            result.extrapolated_fraction[name] = float(extrap.mean()) if extrap.size else 0.0
-        err = values - ref
-        if offset_rows is not None:
-            for r, off in _run_offsets(model, offset_sub).items():
-                err[run == r] -= off
-        result.samples[name] = ErrorStats.of(err)
-        rec = np.column_stack([np.bincount(inv, weights=err[:, j], minlength=uniq.size) for j in range(6)])
-        result.records[name] = ErrorStats.of(rec / cnt[:, None])
-        result.static[name] = _static_check(values, ref, static, lab)
+            result.extrapolated_fraction[name] = acc.extrapolated / acc.n if acc.n else 0.0
+        result.samples[name] = acc.sample_stats()
+        result.records[name] = acc.record_stats()
+        result.static[name] = acc.static_check()
 
 
 def _draw(rng: np.random.Generator, n: int, fraction: float, chunk: int = 1 << 20) -> np.ndarray:
@@ -335,7 +438,8 @@ def ins_test(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.nd
         return
     rows_w = win.ravel()
     sub = _take(a, rows_w)
-    outputs = {name: _apply(model, sub)[0] for name, model in {"raw": None, **models}.items()}
+    done: dict[int, Compensated] = {}
+    outputs = {name: _apply(model, sub, done=done)[0] for name, model in {"raw": None, **models}.items()}
     result.ins = ins_errors(a, win, outputs)
 
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from .compensation import Compensated, compensate_poly
 from .rbf import DEFAULT_WIDTHS, RbfNetwork, normalisation, train_rbf
@@ -66,23 +67,35 @@ class RbfModel:
         """(N, d) network inputs of one channel from outputs y (N, 6) and temperature."""
         return network_inputs(self.variant, y, temp_c, channel)
 
-    def compensate(self, y: np.ndarray, temp_c: np.ndarray) -> Compensated:
+    def compensate(self, y: np.ndarray, temp_c: np.ndarray, base: Compensated | None = None) -> Compensated:
+        """Compensated outputs of y (N, 6) at temperatures (N,). `base`: the base polynomial's compensation
+        of the same rows when the caller has it already (hybrid only; not modified)."""
         y = np.asarray(y, dtype=float)
         temp_c = np.asarray(temp_c, dtype=float)
         if self.base is not None:
-            base = compensate_poly(self.base, y, temp_c)
+            if base is None:
+                base = compensate_poly(self.base, y, temp_c)
             out, extrap = base.values.copy(), base.extrapolated.copy()
         else:
             out = y.copy()
             extrap = (temp_c < self.t_min_c) | (temp_c > self.t_max_c)
+        columns = {c: (y[:, c] if c >= 0 else temp_c) for c in range(-1, 6)}
+        distinct = _Distinct(columns)
         for k, net in enumerate(self.networks):
-            x = self.inputs(y, temp_c, k)
-            extrap |= net.outside(x, self.input_margin)
+            used = input_columns(self.variant, k)
+            found = distinct.rows(used)
+            if found is None:
+                x = self.inputs(y, temp_c, k)
+            else:  # each distinct input once (the outputs are quantised): the same values, gathered
+                x = np.column_stack([columns[c][found[0]] for c in used])
+            outside = net.outside(x, self.input_margin)
+            extrap |= outside if found is None else outside[found[1]]
             if net.n_centres == 0:  # nothing left for the network: the output is the base's
                 continue
             if self.variant == "hybrid":  # bias(T) held at its edge value beyond the training temperatures
                 x = np.clip(x, net.input_min, net.input_max)
-            out[:, k] += net.predict(x)
+            pred = net.predict(x)
+            out[:, k] += pred if found is None else pred[found[1]]
         return Compensated(values=out, extrapolated=extrap)
 
     def to_dict(self) -> dict[str, Any]:
@@ -113,6 +126,82 @@ def input_names(variant: str, channel: int) -> list[str]:
     if variant == "hybrid":
         return ["imu_temp_c"]
     return [cols[channel], "imu_temp_c"]
+
+
+def input_columns(variant: str, channel: int) -> tuple[int, ...]:
+    """The network's inputs as columns of (y, temperature): 0-5 the outputs, -1 the temperature, in the
+    order of `network_inputs`."""
+    if variant == "triad":
+        base = 0 if channel < 3 else 3
+        return (base, base + 1, base + 2, -1)
+    if variant == "hybrid":
+        return (-1,)
+    return (channel, -1)
+
+
+DISTINCT_MIN_ROWS = 4096  # below this, evaluating every row costs less than finding the distinct ones
+DISTINCT_MAX_FRACTION = 0.5  # more distinct inputs than this fraction of the rows: evaluate every row
+
+
+class _Distinct:
+    """The distinct rows of sets of input columns, each column factorised once (hashing, no sort).
+
+    Logged outputs are quantised (int16 counts) and so is the temperature, so a million rows hold a few
+    thousand distinct (output, temperature) pairs: a network evaluated once per distinct input gives
+    the same values at a fraction of the kernels."""
+
+    def __init__(self, columns: dict[int, np.ndarray]) -> None:
+        self.columns = columns
+        self.n = next(iter(columns.values())).shape[0]
+        self._codes: dict[int, tuple[np.ndarray, int] | None] = {}
+        self._rows: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray] | None] = {}
+
+    def _column(self, c: int) -> tuple[np.ndarray, int] | None:
+        if c not in self._codes:
+            codes, uniques = pd.factorize(self.columns[c], use_na_sentinel=True)
+            # NaN inputs (code -1) take the direct path, which propagates them as before
+            self._codes[c] = None if codes.size and codes.min() < 0 else (codes.astype(np.int64), len(uniques))
+        return self._codes[c]
+
+    def rows(self, used: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+        """(one row index per distinct input, each row's index into them), or None: evaluate every row."""
+        if self.n < DISTINCT_MIN_ROWS:
+            return None
+        if used not in self._rows:
+            self._rows[used] = self._find(used)
+        return self._rows[used]
+
+    def _find(self, used: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+        code: np.ndarray | None = None
+        card = 1
+        for c in used:
+            got = self._column(c)
+            if got is None:
+                return None
+            codes, size = got
+            card *= max(size, 1)
+            if card > self.n / DISTINCT_MAX_FRACTION or card > 1 << 62:
+                # too many combinations to code densely: find the distinct combined codes so far
+                if code is None:
+                    return None
+                code, size_c = _refactor(code)
+                card = size_c * max(size, 1)
+                if size_c > DISTINCT_MAX_FRACTION * self.n:
+                    return None
+            code = codes if code is None else code * size + codes
+        assert code is not None
+        inverse, n_distinct = _refactor(code)
+        if n_distinct > DISTINCT_MAX_FRACTION * self.n:
+            return None
+        first = np.empty(n_distinct, dtype=np.int64)
+        first[inverse] = np.arange(self.n)  # any row of a distinct input stands for all of them
+        return first, inverse
+
+
+def _refactor(code: np.ndarray) -> tuple[np.ndarray, int]:
+    """Dense codes 0..k-1 of integer codes, and k."""
+    inverse, uniques = pd.factorize(code)
+    return inverse.astype(np.int64, copy=False), len(uniques)
 
 
 def network_inputs(variant: str, y: np.ndarray, temp_c: np.ndarray, channel: int) -> np.ndarray:
