@@ -10,6 +10,9 @@ repeated ones are dropped and counted. The link is reopened automatically when i
 Reading and parsing happen under one lock, so `begin_record` sees every byte that has
 reached the port. A stream whose bytes arrive but never make a valid frame is reported
 as such (`stream_report`): bytes received, frames rejected and why, bytes skipped.
+On a line whose pyserial object says `caller_fed` (a dry run's line inside the process, whose
+bytes arrive only while this process writes them) there is no reader thread: every call reads
+and parses what is there, and no wait waits.
 """
 
 from __future__ import annotations
@@ -75,6 +78,9 @@ class SerialImu:
         self.reordered = 0
         self.link_drops = 0
         self._reopening = False  # the reader thread is opening the line again
+        # A line whose bytes arrive only while this process writes them (a dry run's line inside the process,
+        # `caller_fed` on the pyserial object): no reader thread; every call reads what is there, nobody waits.
+        self._caller_fed = False
         self._running = False
         self._thread: threading.Thread | None = None
 
@@ -89,10 +95,14 @@ class SerialImu:
             elif self._ser is None and not self._reopen_locked():  # lost before: reopened, and said so
                 raise InstrumentTimeout(self.name, self.address, "the link was lost and the line cannot be opened "
                                       "again")
+            if self._ser is not None:
+                self._caller_fed = bool(getattr(self._ser, "caller_fed", False))
+                self._watch_line()
             if not self._running:
                 self._running = True
-                self._thread = threading.Thread(target=self._reader, name=f"{self.name}-reader", daemon=True)
-                self._thread.start()
+                if not self._caller_fed:
+                    self._thread = threading.Thread(target=self._reader, name=f"{self.name}-reader", daemon=True)
+                    self._thread.start()
 
     def close(self) -> None:
         self._running = False
@@ -161,10 +171,25 @@ class SerialImu:
         except InstrumentError:
             return False
         self._ser = fresh
+        self._watch_line()
         log.info("%s at %s: link restored", self.name, self.address)
         self._event("imu_link_restored", f"{self.name} at {self.address}: link restored")
         self._cond.notify_all()
         return True
+
+    def _watch_line(self) -> None:
+        """On a caller-fed line, be told when it is lost: no reader thread is there to find it."""
+        if self._caller_fed and self._ser is not None:
+            self._ser.on_lost = self._line_lost
+
+    def _line_lost(self) -> None:
+        """The line was lost: read what it still held, then find it lost (what the reader thread does)."""
+        with self._cond:
+            ser = self._ser
+            for _ in range(2):  # the rest of what was sent, then the read that fails
+                if ser is None or self._ser is not ser:
+                    return
+                self._drain_locked()
 
     def _reader(self) -> None:
         while self._running:
@@ -308,6 +333,8 @@ class SerialImu:
         """The newest frame; None when none has arrived yet. Bytes without a valid frame raise
         InstrumentProtocolError saying what arrived."""
         with self._cond:
+            if self._caller_fed:
+                self._drain_locked()  # no reader thread has parsed what is there
             if not self._chunks:
                 self._check_stream()
                 return None
@@ -320,9 +347,14 @@ class SerialImu:
         last = self._last
         return None if last is None else last % COUNTER_MODULO
 
+    def _wait_s(self, timeout_s: float) -> float:
+        """Real seconds a wait for frames may last: none on a caller-fed line (what is not there after a read
+        cannot come while this thread waits), else the policy's (a dry run's frames come, however slow)."""
+        return 0.0 if self._caller_fed else io_timeouts.wall_timeout(self.address, timeout_s)
+
     def wait_counter16(self, counter16: int, timeout_s: float) -> bool:
         """Wait until the frame with this 16-bit counter is the last parsed, in arrival order (dry-run barrier)."""
-        wait_s = io_timeouts.wall_timeout(self.address, timeout_s)  # a dry run's frames come, however slow
+        wait_s = self._wait_s(timeout_s)
         with self._cond:
             if self._ser is None and self._running:
                 self._reopen_locked()  # a dry run's lost line: reopened now, or at a later barrier
@@ -332,7 +364,7 @@ class SerialImu:
     def wait_received(self, n_bytes: int, timeout_s: float) -> bool:
         """Wait until `n_bytes` have arrived since this driver was made, all parsed (a dry run's barrier:
         the simulated IMU says how many it put on the line, frames or not)."""
-        wait_s = io_timeouts.wall_timeout(self.address, timeout_s)
+        wait_s = self._wait_s(timeout_s)
         with self._cond:
             if self._ser is None and self._running:
                 self._reopen_locked()  # a dry run's lost line: reopened now, or at a later barrier
@@ -350,6 +382,8 @@ class SerialImu:
 
     def end_record(self, start: int, n_frames: int, timeout_s: float) -> ImuRecord:
         """The n frames after `start`, waiting up to timeout_s (real seconds) for late ones."""
+        if self._caller_fed:
+            timeout_s = 0.0  # everything sent is read by the drain below: a missing frame stays missing
         with self._cond:
             self._drain_locked()
             corrupt_at_start = self._open_records.pop(start, self._decoder.corrupt)

@@ -206,10 +206,12 @@ def real_lab(config: LabConfig, *, max_rate_dps: float, operator: Operator | Non
 
 
 def simulated_lab(*, max_rate_dps: float, sim_config: Any = None, start_t: float = 0.0, orientation: str | None = None,
-                  link: str = "tcp", on_retry: Callable[[int, Exception], None] | None = None,
+                  link: str = "memory", on_retry: Callable[[int, Exception], None] | None = None,
                   on_event: Callable[[str, str], None] | None = None, remount_s: float = 300.0) -> Lab:
     """A dry-run lab: sims on a virtual clock, reached through the real drivers; its operator takes
-    `remount_s` (the procedure's) for each remount."""
+    `remount_s` (the procedure's) for each remount. The table and the IMU are on serial lines inside the
+    process by default (`link="memory"`: the same bytes, no socket or thread in between; "tcp" or "pty"
+    for real ones)."""
     from labrunner.sims.lab import SimLab
     from labrunner.sims.world import SimLabConfig
 

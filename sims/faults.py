@@ -16,7 +16,7 @@ from labrunner.fault_kinds import FaultKind, fault_kind
 
 from .chamber_server import ChamberServer
 from .imu_stream import ImuStreamSim
-from .links import SimPort, TcpSerialPort
+from .links import MemoryPort, SimPort, TcpSerialPort
 from .table_server import TableServer
 from .world import SimWorld
 
@@ -120,7 +120,7 @@ class SimFaults:
 
     def _link_down(self, k: FaultKind, down: bool) -> None:
         port = self.table_port if k is K.TABLE_LINK_DROP else self.imu_port
-        if not isinstance(port, TcpSerialPort):
+        if not isinstance(port, (TcpSerialPort, MemoryPort)):
             # A pty cannot refuse its one client; the fault needs the socket:// links.
             log.warning("sim fault %s: not possible on a %s link; ignored", k.value, type(port).__name__)
             return

@@ -2,8 +2,10 @@
 
 In a dry run the clock is virtual and the IMU stream is a clock listener; served
 standalone (`labrunner sim serve`) the clock is wall time, optionally sped up, and
-the IMU has a ticker thread. Either way the drivers reach the sims through real
-sockets or pseudo-terminals.
+the IMU has a ticker thread. The drivers reach the sims through real sockets or
+pseudo-terminals, or, in a dry run built by `labrunner.lab.simulated_lab`, through serial
+lines inside the process (`links.MemoryPort`) that carry the same bytes; the chamber is a
+pymodbus server either way.
 """
 
 from __future__ import annotations
@@ -19,12 +21,15 @@ from .aio import LoopThread
 from .chamber_server import ChamberServer
 from .faults import SimFaults
 from .imu_stream import IMU_DRIVERS, IMU_FORMATS, ImuStreamSim
-from .links import PtyPort, SimPort, TcpSerialPort
+from .links import MemoryPort, PtyPort, SimPort, TcpSerialPort
 from .table_server import TableServer
 from .world import SimLabConfig, SimWorld
 
 log = logging.getLogger(__name__)
 # Plant faults a sim configuration may switch on from the start (faults.chamber).
+# How the table and the IMU are reached: "memory" (a dry run's lines inside the process, `MemoryPort`:
+# the protocols' bytes without the sockets' thread hand-offs), "tcp" (socket://) or "pty".
+LINKS = ("memory", "tcp", "pty")
 STARTING_FAULTS = {"heater_failed": FaultKind.HEATER_FAILURE, "compressor_failed": FaultKind.COMPRESSOR_FAILURE}
 
 
@@ -41,8 +46,11 @@ class SimLab:
     def __init__(self, config: SimLabConfig, clock: Clock, *, host: str = "127.0.0.1", link: str = "tcp",
                  chamber_transport: str = "tcp", chamber_profile: str = "watlow_f4",
                  ports: SimPorts = SimPorts()) -> None:
-        if link not in ("tcp", "pty"):
-            raise ValueError(f"sim link must be 'tcp' or 'pty', got {link!r}")
+        if link not in LINKS:
+            raise ValueError(f"sim link must be one of {', '.join(LINKS)}, got {link!r}")
+        if link == "memory" and not isinstance(clock, VirtualClock):
+            # Served in real time, frames come from a ticker thread and a driver in another process may read.
+            raise ValueError("sim link 'memory' needs a virtual clock (a dry run)")
         self.config = config
         self.clock = clock
         self.world = SimWorld(config, clock.now())
@@ -53,9 +61,15 @@ class SimLab:
         # only catches a hang); served in real time, a line with nobody reading loses its bytes.
         virtual = isinstance(clock, VirtualClock)
         send_s = SAFETY_NET_S if virtual else 2.0
-        self.table_port: SimPort = TcpSerialPort(host, ports.table, send_s) if link == "tcp" else PtyPort(send_s)
-        self.imu_port: SimPort = TcpSerialPort(host, ports.imu, send_s, await_close=virtual) if link == "tcp" \
-            else PtyPort(send_s)
+        self.table_port: SimPort
+        self.imu_port: SimPort
+        if link == "memory":
+            self.table_port, self.imu_port = MemoryPort("table"), MemoryPort("imu")
+        elif link == "tcp":
+            self.table_port = TcpSerialPort(host, ports.table, send_s)
+            self.imu_port = TcpSerialPort(host, ports.imu, send_s, await_close=virtual)
+        else:
+            self.table_port, self.imu_port = PtyPort(send_s), PtyPort(send_s)
         self.table = TableServer(self.world, clock, self.table_port, seed=config.seed)
         self.imu = ImuStreamSim(self.world, clock, self.imu_port, rate_hz=config.imu_rate_hz, seed=config.seed,
                                 codec=IMU_FORMATS[config.imu_format])

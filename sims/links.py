@@ -2,7 +2,9 @@
 
 The driver opens `port.url` with `serial.serial_for_url`: `socket://127.0.0.1:N` for a
 TCP port (as with a serial-to-Ethernet converter in a real lab), or the slave device
-path of a pty pair. The simulated instrument writes and reads the other end.
+path of a pty pair. The simulated instrument writes and reads the other end. A dry run on a
+virtual clock uses a `MemoryPort` (`labsim://NAME-N`): the same bytes, inside the process, with
+the server answering in the driver's thread.
 """
 
 from __future__ import annotations
@@ -15,9 +17,16 @@ import socket
 import threading
 import time
 import tty
+from collections.abc import Callable
 from typing import Protocol
 
+import serial
+
 log = logging.getLogger(__name__)
+
+# `labsim://` URLs open a MemoryPort's driver end (sims/protocol_labsim.py, found by pyserial by its name).
+if __package__ and __package__ not in serial.protocol_handler_packages:
+    serial.protocol_handler_packages.append(__package__)
 
 
 class SimPort(Protocol):
@@ -275,3 +284,180 @@ class PtyPort:
                 os.close(fd)
             except OSError:
                 pass
+
+
+class MemoryPort:
+    """One serial line inside the process, for a dry run on a virtual clock (`labsim://NAME-N`).
+
+    The driver opens `url` with `serial.serial_for_url` as it opens any line (pyserial finds
+    `sims.protocol_labsim` by the scheme) and gets a `serial.SerialBase` whose bytes are this
+    port's: what the simulated instrument writes waits in the driver's receive buffer, and what
+    the driver writes is handed to the attached server (`attach_server`) in the driver's own
+    thread, which answers through `write` before the driver's `write` returns. The bytes are the
+    protocol's, parsed and formatted by the real server and driver code; what is saved is the
+    sockets' and threads' hand-offs (a reply is in the buffer when the request has been written,
+    a frame when the clock's listener has sent it). Faults as `TcpSerialPort`'s: `refuse` breaks
+    the open end (the driver reads what was sent before, then the line is lost) and refuses opens.
+    """
+
+    _ports: dict[str, MemoryPort] = {}
+    _count = 0
+    _registry_lock = threading.Lock()
+
+    def __init__(self, name: str) -> None:
+        with MemoryPort._registry_lock:
+            MemoryPort._count += 1
+            self.url = f"labsim://{name}-{MemoryPort._count}"
+            MemoryPort._ports[self.url] = self
+        self.bytes_written = 0
+        self.dropped_bytes = 0
+        self._refusing = False
+        self._client: MemoryEnd | None = None
+        self._server: Callable[[bytes], None] | None = None
+
+    @classmethod
+    def lookup(cls, url: str) -> MemoryPort | None:
+        return cls._ports.get(url.lower())
+
+    def attach_server(self, serve: Callable[[bytes], None]) -> None:
+        """`serve(data)` gets what the driver writes, in the driver's thread."""
+        self._server = serve
+
+    def open_end(self) -> MemoryEnd:
+        """The driver's end of the line (a new one replaces the previous one, as a new TCP client does)."""
+        if self._refusing:
+            raise ConnectionRefusedError(f"{self.url}: connection refused")
+        old, self._client = self._client, MemoryEnd(self)
+        if old is not None:
+            old.lose("replaced by a new connection")
+        log.debug("sim port %s: client connected%s", self.url, " (replacing the previous one)" if old else "")
+        return self._client
+
+    def from_driver(self, end: MemoryEnd, data: bytes) -> None:
+        if end is self._client and self._server is not None:
+            self._server(data)
+
+    def end_closed(self, end: MemoryEnd) -> None:
+        if self._client is end:
+            self._client = None
+
+    @property
+    def connected(self) -> bool:
+        return self._client is not None
+
+    @property
+    def refusing(self) -> bool:
+        return self._refusing
+
+    @refusing.setter
+    def refusing(self, on: bool) -> None:
+        self.refuse(on)
+
+    def refuse(self, on: bool) -> None:
+        """Fault: drop the client and refuse opens; or accept them again."""
+        if on == self._refusing:
+            return
+        self._refusing = on
+        if on:
+            self.disconnect()
+        log.debug("sim port %s: %s connections", self.url, "refusing" if on else "accepting")
+
+    def disconnect(self) -> None:
+        """Fault: the line drops; the driver reads what was sent before it, then finds the line lost."""
+        client, self._client = self._client, None
+        if client is not None:
+            log.debug("sim port %s: client disconnected", self.url)
+            client.lose("connection lost")
+
+    def write(self, data: bytes) -> int:
+        """Put bytes on the line for the driver; with nobody connected they are lost, as on a real line."""
+        client = self._client
+        if client is None:
+            self.dropped_bytes += len(data)
+            return 0
+        client.receive(data)
+        self.bytes_written += len(data)
+        return len(data)
+
+    def read(self, timeout: float) -> bytes:
+        """Nothing to read here: the driver's bytes go to the attached server as they are written."""
+        return b""
+
+    def close(self) -> None:
+        self.disconnect()
+        self._server = None
+        with MemoryPort._registry_lock:
+            if MemoryPort._ports.get(self.url) is self:
+                del MemoryPort._ports[self.url]
+
+
+class MemoryEnd:
+    """The driver's end of a `MemoryPort`: its receive buffer, and whether the line was lost."""
+
+    def __init__(self, port: MemoryPort) -> None:
+        self.port = port
+        self._buf = bytearray()
+        self._cond = threading.Condition()
+        self.lost: str | None = None  # why the line was lost (None: up)
+        # Told when the port loses the line (not when the driver closes it): with no reader thread
+        # waiting on it, the driver reads the rest and finds the loss at that moment, as over TCP.
+        self.on_lost: Callable[[], None] | None = None
+
+    def receive(self, data: bytes) -> None:
+        with self._cond:
+            self._buf += data
+            self._cond.notify_all()
+
+    def lose(self, why: str) -> None:
+        with self._cond:
+            self.lost = why
+            self._cond.notify_all()
+        tell, self.on_lost = self.on_lost, None
+        if tell is not None:
+            tell()
+
+    def send(self, data: bytes) -> None:
+        if self.lost is not None:
+            raise ConnectionResetError(f"{self.port.url}: {self.lost}")
+        self.port.from_driver(self, data)
+
+    @property
+    def waiting(self) -> int:
+        return len(self._buf)
+
+    def clear(self) -> None:
+        with self._cond:
+            self._buf.clear()
+
+    def take(self, size: int, timeout: float | None, until: bytes | None = None) -> bytes:
+        """Up to `size` bytes (through `until` when given), waiting up to `timeout` real seconds for them
+        (None: until they come). A lost line gives what was sent before it, then raises ConnectionResetError."""
+        end = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while True:
+                if until is not None:
+                    cut = self._buf.find(until)
+                    n = min(size, cut + len(until)) if cut >= 0 else (size if len(self._buf) >= size else 0)
+                else:
+                    n = min(size, len(self._buf))
+                if n:
+                    out = bytes(self._buf[:n])
+                    del self._buf[:n]
+                    return out
+                if self.lost is not None:
+                    if self._buf:  # the rest of a partial line, then the loss
+                        out = bytes(self._buf)
+                        self._buf.clear()
+                        return out
+                    raise ConnectionResetError(f"{self.port.url}: {self.lost}")
+                left = None if end is None else end - time.monotonic()
+                if left is not None and left <= 0:  # timed out: what came of a line, as pyserial's read_until
+                    out = bytes(self._buf[:size])
+                    del self._buf[:size]
+                    return out
+                self._cond.wait(left)
+
+    def close(self) -> None:
+        self.on_lost = None  # closed by the driver itself
+        self.port.end_closed(self)
+        self.lose("closed")

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from labrunner.clock import Clock, io_timeouts
 from labrunner.drivers.table_profiles import TableLanguage, language_from
 
-from .links import SimPort
+from .links import MemoryPort, SimPort
 from .world import SimWorld
 
 log = logging.getLogger(__name__)
@@ -56,29 +56,37 @@ class TableServer:
         self.commands = 0
         self._rng = random.Random(seed)
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="sim-table", daemon=True)
-        self._thread.start()
+        self._buf = b""
+        self._thread: threading.Thread | None = None
+        if isinstance(port, MemoryPort):  # a dry run's line inside the process: answered in the driver's thread
+            port.attach_server(self.receive)
+        else:
+            self._thread = threading.Thread(target=self._serve, name="sim-table", daemon=True)
+            self._thread.start()
         log.info("rate table sim: serving on %s (language %s)", port.url, self.language.name)
 
     def _serve(self) -> None:
-        buf = b""
         while not self._stop.is_set():
             data = self.port.read(0.05)
-            if not data:
-                continue
-            buf += data
-            while True:
-                cut = min((i for i in (buf.find(b"\r"), buf.find(b"\n")) if i >= 0), default=-1)
-                if cut < 0:
-                    break
-                line, buf = buf[:cut], buf[cut + 1:]
-                if line.strip():
-                    reply = self.handle(line.decode("ascii", errors="replace").strip())
-                    if reply is not None:
-                        self.port.write(reply)
-            if len(buf) > 4096:  # a line that never ends is noise
-                log.debug("rate table sim: discarded %d bytes without a line end", len(buf))
-                buf = b""
+            if data:
+                self.receive(data)
+
+    def receive(self, data: bytes) -> None:
+        """Bytes from the line: every complete command line is answered on the port."""
+        buf = self._buf + data
+        while True:
+            cut = min((i for i in (buf.find(b"\r"), buf.find(b"\n")) if i >= 0), default=-1)
+            if cut < 0:
+                break
+            line, buf = buf[:cut], buf[cut + 1:]
+            if line.strip():
+                reply = self.handle(line.decode("ascii", errors="replace").strip())
+                if reply is not None:
+                    self.port.write(reply)
+        if len(buf) > 4096:  # a line that never ends is noise
+            log.debug("rate table sim: discarded %d bytes without a line end", len(buf))
+            buf = b""
+        self._buf = buf
 
     def handle(self, line: str) -> bytes | None:
         """Reply bytes for one command line (None: no reply)."""
@@ -159,4 +167,5 @@ class TableServer:
 
     def close(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=2)
+        if self._thread is not None:
+            self._thread.join(timeout=2)
