@@ -74,28 +74,49 @@ def _rodrigues(phi: np.ndarray) -> np.ndarray:
     return np.eye(3)[None] + s * kx + (1 - c) * (kx @ kx)
 
 
+STEP_BLOCK = 256  # integration steps whose rotations are formed at once (windows x steps x 9 doubles)
+
+
+def _solution(acc: np.ndarray, rate: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """End position (S, 3) in m and attitude (S, 3, 3) of strapdown solutions (S windows of n steps)
+    from specific force `acc` (S, n, 3) in g and rate (S, n, 3) in deg/s, starting at rest.
+
+    Each step's specific force, rotated by the attitude at the step's start, moves the end position by
+    f dt (n - k - 1) dt + f dt^2 / 2 (the velocity it adds, carried to the end, and its own half step):
+    the position is one weighted sum, and only the attitudes are integrated step by step."""
+    n_s, n = acc.shape[:2]
+    weight = (n - np.arange(n) - 0.5) * dt ** 2 * G0
+    att = np.repeat(np.eye(3)[None], n_s, axis=0)
+    pos = np.zeros((n_s, 3))
+    rad = np.pi / 180.0
+    for k0 in range(0, n, STEP_BLOCK):
+        kb = slice(k0, min(k0 + STEP_BLOCK, n))
+        b = kb.stop - kb.start
+        rot = _rodrigues((rate[:, kb] * (rad * dt)).reshape(-1, 3)).reshape(n_s, b, 3, 3)
+        starts = np.empty((n_s, b, 3, 3))
+        for i in range(b):
+            starts[:, i] = att
+            att = att @ rot[:, i]
+        pos += np.einsum("sbij,sbj,b->si", starts, acc[:, kb], weight[kb])
+    return pos, att
+
+
+def _errors(pos: np.ndarray, att: np.ndarray, pos_t: np.ndarray, att_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (m) and rotation angle (deg) between two sets of end states."""
+    rel = np.einsum("wji,wjk->wik", att_t, att)
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
+    return np.linalg.norm(pos - pos_t, axis=1), np.degrees(np.arccos(cos))
+
+
 def navigate(values: np.ndarray, reference: np.ndarray, idx: np.ndarray,
              window_s: float = DEFAULT_WINDOW_S) -> tuple[np.ndarray, np.ndarray]:
     """Position (m) and attitude (deg) errors (W,) at the windows' ends of navigating with `values`
     (N, 6: g, deg/s) against `reference`; each of a window's rows stands for window_s / rows."""
-    n_w, n = idx.shape
-    dt = window_s / n
-    r_m = np.repeat(np.eye(3)[None], n_w, axis=0)
-    r_t = r_m.copy()
-    vel = np.zeros((n_w, 3))
-    pos = np.zeros((n_w, 3))
-    rad = np.pi / 180.0
-    for k in range(n):
-        i = idx[:, k]
-        # specific force error in the navigation frame (m/s^2), from the step's start values
-        f_err = (np.einsum("wij,wj->wi", r_m, values[i, :3]) - np.einsum("wij,wj->wi", r_t, reference[i, :3])) * G0
-        pos += vel * dt + 0.5 * f_err * dt ** 2
-        vel += f_err * dt
-        r_m = r_m @ _rodrigues(values[i, 3:] * rad * dt)
-        r_t = r_t @ _rodrigues(reference[i, 3:] * rad * dt)
-    rel = np.einsum("wji,wjk->wik", r_t, r_m)
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
-    return np.linalg.norm(pos, axis=1), np.degrees(np.arccos(cos))
+    dt = window_s / idx.shape[1]
+    v, r = values[idx], reference[idx]
+    pos, att = _solution(v[..., :3], v[..., 3:], dt)
+    pos_t, att_t = _solution(r[..., :3], r[..., 3:], dt)
+    return _errors(pos, att, pos_t, att_t)
 
 
 def window_rows(a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
@@ -114,14 +135,15 @@ def ins_errors(a: dict[str, np.ndarray], win: np.ndarray, outputs: dict[str, np.
         return {name: InsErrors(float("nan"), float("nan"), float("nan"), 0, window_s) for name in outputs}
     rows = win.ravel()
     ref = reference_values(a["orientation"][rows], a["rate"][rows])
-    names = list(outputs)
     w, n = win.shape
-    local = np.arange(w * n).reshape(w, n)
-    # All output sets in one pass: set m's windows index its copy of the rows.
-    stacked = np.concatenate([outputs[m] for m in names])
-    all_idx = np.concatenate([local + m * rows.size for m in range(len(names))])
-    dist, ang = navigate(stacked, np.tile(ref, (len(names), 1)), all_idx, window_s)
-    return {name: InsErrors(position_m=float(dist[m * w:(m + 1) * w].mean()),
-                            attitude_deg=float(ang[m * w:(m + 1) * w].mean()),
-                            position_m_max=float(dist[m * w:(m + 1) * w].max()), n_windows=w, window_s=window_s)
-            for m, name in enumerate(names)}
+    dt = window_s / n
+    r = ref.reshape(w, n, 6)
+    pos_t, att_t = _solution(r[..., :3], r[..., 3:], dt)  # the reference solution, once for every set
+    out: dict[str, InsErrors] = {}
+    for name, values in outputs.items():
+        v = np.asarray(values, dtype=float).reshape(w, n, 6)
+        pos, att = _solution(v[..., :3], v[..., 3:], dt)
+        dist, ang = _errors(pos, att, pos_t, att_t)
+        out[name] = InsErrors(position_m=float(dist.mean()), attitude_deg=float(ang.mean()),
+                              position_m_max=float(dist.max()), n_windows=w, window_s=window_s)
+    return out

@@ -147,8 +147,14 @@ def gaussian_design(z: np.ndarray, centres: np.ndarray, width: np.ndarray | floa
     width = np.asarray(width, dtype=float)
     z = z / width
     centres = centres / width
-    d2 = np.einsum("ij,ij->i", z, z)[:, None] - 2.0 * z @ centres.T + np.einsum("ij,ij->i", centres, centres)[None, :]
-    return np.exp(-np.maximum(d2, 0.0) / 2.0)
+    # |z|^2 - 2 z.c + |c|^2 in place: one (n, m) array, not five (the same operations in the same order)
+    d2 = z @ centres.T
+    d2 *= -2.0
+    d2 += np.einsum("ij,ij->i", z, z)[:, None]
+    d2 += np.einsum("ij,ij->i", centres, centres)[None, :]
+    np.maximum(d2, 0.0, out=d2)
+    d2 *= -0.5
+    return np.exp(d2, out=d2)
 
 
 def farthest_points(z: np.ndarray, k: int, weights: np.ndarray | None = None) -> np.ndarray:
@@ -158,13 +164,17 @@ def farthest_points(z: np.ndarray, k: int, weights: np.ndarray | None = None) ->
         return np.arange(n)
     start = int(np.argmax(weights)) if weights is not None else 0
     chosen = [start]
-    d = np.einsum("ij,ij->i", z - z[start], z - z[start])
+    diff = z - z[start]
+    d = np.einsum("ij,ij->i", diff, diff)
+    dj = np.empty_like(d)
     for _ in range(k - 1):
         j = int(np.argmax(d))
         if d[j] <= 0:
             break
         chosen.append(j)
-        d = np.minimum(d, np.einsum("ij,ij->i", z - z[j], z - z[j]))
+        np.subtract(z, z[j], out=diff)  # buffers reused: 250 passes over the points allocate nothing
+        np.einsum("ij,ij->i", diff, diff, out=dj)
+        np.minimum(d, dj, out=d)
     return np.array(chosen)
 
 
