@@ -30,10 +30,9 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 from sqlalchemy import (
     Column,
     Float,
@@ -57,11 +56,14 @@ from sqlalchemy import (
 from sqlalchemy.engine import Connection, CursorResult, Engine
 from sqlalchemy.exc import DatabaseError, IntegrityError, OperationalError
 
-from labrunner.campaign_csv import COLUMNS
-from labrunner.domain import ORIENTATIONS
+from labrunner.domain import ACCEL_COLUMNS, GYRO_COLUMNS, ORIENTATIONS
+from labrunner.domain import CSV_COLUMNS as COLUMNS
 from labrunner.errors import UserError
 from labrunner.store_address import StoreAddress, store_address
 from labrunner.version import __version__
+
+if TYPE_CHECKING:  # pandas is imported where frames are built: `labrunner list`/`status` do not load it
+    import pandas as pd
 
 log = logging.getLogger(__name__)
 
@@ -262,9 +264,10 @@ def _f64(a: np.ndarray) -> bytes:
     return np.ascontiguousarray(a, dtype="<f8").tobytes()
 
 
-def _block_from_row(row: Any, path: StoreAddress) -> SampleBlock:
-    """A stored sample block decoded, or `StoreDamage` naming its campaign, step and the blob that does
-    not hold what its row says (a short or garbled blob would otherwise be a reshape error)."""
+def _checked_row(row: Any, path: StoreAddress) -> tuple[float, float, float] | None:
+    """A stored block row whose blobs hold what the row says (the LSB sizes of an int16 block, None for
+    float32), or `StoreDamage` naming its campaign, step and the blob that does not (a short or
+    garbled blob would otherwise be a reshape error)."""
     n, enc = row["n"], row["encoding"]
     where = (f"{path}: campaign {row['campaign_id']}, table sample_blocks, "
              + (f"step {row['step_idx']}" if row["step_idx"] is not None else f"{row['kind']} block at "
@@ -287,7 +290,13 @@ def _block_from_row(row: Any, path: StoreAddress) -> SampleBlock:
     if enc == "i16" and not all(isinstance(row[c], float) and row[c] > 0 for c in ("accel_lsb", "gyro_lsb",
                                                                                      "temp_lsb")):
         raise StoreDamage(f"{where}: int16 samples without their LSB sizes; the store is damaged")
-    lsb = (row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]) if enc == "i16" else None
+    return (row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]) if enc == "i16" else None
+
+
+def _block_from_row(row: Any, path: StoreAddress) -> SampleBlock:
+    """A stored sample block decoded (`StoreDamage` if its blobs do not hold what its row says)."""
+    lsb = _checked_row(row, path)
+    n, enc = row["n"], row["encoding"]
     return SampleBlock(
         kind=row["kind"], step_idx=row["step_idx"], run=row["run"], orientation=row["orientation"],
         t0_s=row["t0_s"], rate_hz=row["rate_hz"],
@@ -999,6 +1008,8 @@ class Store:
         return None
 
     def fits_frame(self, campaign_id: int) -> pd.DataFrame:
+        import pandas as pd
+
         with self.reading() as conn:
             return pd.read_sql(select(fits.c.id, fits.c.created_wall, fits.c.software_version, fits.c.provenance)
                                .where(fits.c.campaign_id == campaign_id).order_by(fits.c.id), conn)
@@ -1006,10 +1017,14 @@ class Store:
     # --- readers ------------------------------------------------------------------------------------
 
     def steps_frame(self, campaign_id: int) -> pd.DataFrame:
+        import pandas as pd
+
         with self.reading() as conn:
             return pd.read_sql(select(steps).where(steps.c.campaign_id == campaign_id).order_by(steps.c.idx), conn)
 
     def events_frame(self, campaign_id: int, last: int | None = None) -> pd.DataFrame:
+        import pandas as pd
+
         q = select(events).where(events.c.campaign_id == campaign_id)
         if last:
             q = q.order_by(events.c.id.desc()).limit(last)
@@ -1018,12 +1033,28 @@ class Store:
         return frame.sort_values("id").reset_index(drop=True)
 
     def blocks(self, campaign_id: int, kinds: Sequence[str] = ("record",)) -> Iterator[SampleBlock]:
+        for row in self._block_rows(campaign_id, kinds):
+            yield _block_from_row(row, self.path)
+
+    def _block_rows(self, campaign_id: int, kinds: Sequence[str]) -> Iterator[Any]:
+        """The stored block rows of the given kinds in time order (blobs not yet checked)."""
         q = (select(sample_blocks).where(sample_blocks.c.campaign_id == campaign_id,
                                          sample_blocks.c.kind.in_(list(kinds)))
              .order_by(sample_blocks.c.t0_s, sample_blocks.c.id))
         with self.reading() as conn:
-            for row in conn.execute(q).mappings():
-                yield _block_from_row(row, self.path)
+            yield from conn.execute(q).mappings()
+
+    def _one_lsb(self, campaign_id: int, kinds: Sequence[str]) -> tuple[float, float, float] | None:
+        """The LSB sizes (accel, gyro, temp) when every block of these kinds holds int16 counts of the
+        same sizes (one IMU: what a recorded campaign is), else None."""
+        q = (select(sample_blocks.c.encoding, sample_blocks.c.accel_lsb, sample_blocks.c.gyro_lsb,
+                    sample_blocks.c.temp_lsb).distinct()
+             .where(sample_blocks.c.campaign_id == campaign_id, sample_blocks.c.kind.in_(list(kinds))).limit(2))
+        with self.reading() as conn:
+            found = conn.execute(q).fetchall()
+        if len(found) != 1 or found[0][0] != "i16" or not all(isinstance(v, float) and v > 0 for v in found[0][1:]):
+            return None
+        return (float(found[0][1]), float(found[0][2]), float(found[0][3]))
 
     def sample_count(self, campaign_id: int, kinds: Sequence[str] = ("record",)) -> int:
         """Samples stored in a campaign's blocks of the given kinds (from the block rows, no blob read)."""
@@ -1033,56 +1064,91 @@ class Store:
             return int(conn.execute(q).scalar_one())
 
     def samples_frame(self, campaign_id: int, include_monitor: bool = False, with_steps: bool = False,
-                      remount_c: float | None = None, categorical: bool = False) -> pd.DataFrame:
+                      remount_c: float | None = None, categorical: bool = False, counts: bool = False) -> pd.DataFrame:
         """All samples in the campaign CSV columns (records; with monitor rows if asked), time-ordered.
 
         `run` is int64, the numbers float64, orientation text; with `categorical` (what `campaign_data`
         reads for the analyses) orientation is categorical: the six orientations first, then any other
         label a block holds, for the validation to name; one byte a row instead of an object.
 
+        With `counts` the IMU channels (accelerometer, gyro, temperature) stay the stored int16 counts
+        with their LSB (`ScaledFloatArray`: float64 to pandas, the same values bit for bit, a quarter
+        of the memory) when every block holds counts of the same LSB sizes; float64 otherwise.
+
         `with_steps` adds, per row, `kind` (record or monitor), the sequencer's `state`, the
         `step_idx` of its step, the chamber `setpoint_c` and the commanded table rate `rate_cmd_dps`
         (see `_with_steps`; `remount_c` is the procedure's remount temperature)."""
+        import pandas as pd
+
         kinds = ("record", "monitor") if include_monitor else ("record",)
         # Columns preallocated to the stored sample count and filled block by block: no per-row
         # Python objects (orientation is one code per block) and no concatenation copy.
         total = self.sample_count(campaign_id, kinds)
-        cols = {c: np.empty(total) for c in COLUMNS if c not in ("run", "orientation")}
+        lsb = self._one_lsb(campaign_id, kinds) if counts else None  # after the count: later blocks are not read
+        cols: dict[str, np.ndarray] = {c: np.empty(total) for c in COLUMNS if c not in ("run", "orientation")}
+        if lsb is not None:  # the blobs' layout: a block's (n, 3) counts are one copy, the columns views
+            accel_counts, gyro_counts = np.empty((total, 3), dtype=np.int16), np.empty((total, 3), dtype=np.int16)
+            cols.update({c: accel_counts[:, j] for j, c in enumerate(ACCEL_COLUMNS)}
+                        | {c: gyro_counts[:, j] for j, c in enumerate(GYRO_COLUMNS)}
+                        | {"imu_temp_c": np.empty(total, dtype=np.int16)})
         run = np.empty(total, dtype=np.int64)
         codes = np.empty(total, dtype=np.int8)
         labels: list[str] = list(ORIENTATIONS)
         step_idx = np.empty(total if with_steps else 0)
         kind = np.empty(total if with_steps else 0, dtype=object)
         at = 0
-        for b in self.blocks(campaign_id, kinds):
-            n = len(b)
+        for row in self._block_rows(campaign_id, kinds):
+            block_lsb = _checked_row(row, self.path)
+            n = int(row["n"])
             if n == 0:
                 continue
             if at + n > total:  # rows written since the count: read what was counted
                 break
             sl = slice(at, at + n)
-            t = b.times()
-            cols["t_s"][sl] = t
-            if b.orientation not in labels:
-                labels.append(b.orientation)
-            codes[sl] = labels.index(b.orientation)
-            run[sl] = b.run
-            cols["chamber_c"][sl] = _interp_readings(t, b.chamber)
-            cols["imu_temp_c"][sl] = b.temp_c
-            cols["table_rate_dps"][sl] = _interp_readings(t, b.table, default=0.0)
-            for j, c in enumerate(("ax_g", "ay_g", "az_g")):
-                cols[c][sl] = b.accel_g[:, j]
-            for j, c in enumerate(("gx_dps", "gy_dps", "gz_dps")):
-                cols[c][sl] = b.gyro_dps[:, j]
+            # SampleBlock.times() computed in place: t0 + (counter - counter[0]) / rate (whole numbers below
+            # 2**31 subtract exactly in float64)
+            counter = np.frombuffer(row["counter"], dtype="<i4")
+            t = cols["t_s"][sl]
+            np.subtract(counter, counter[0], out=t, dtype=np.float64)
+            np.divide(t, row["rate_hz"], out=t)
+            np.add(t, row["t0_s"], out=t)
+            orientation = row["orientation"]
+            if orientation not in labels:
+                labels.append(orientation)
+            codes[sl] = labels.index(orientation)
+            run[sl] = row["run"]
+            cols["chamber_c"][sl] = _interp_readings(t, np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2))
+            cols["table_rate_dps"][sl] = _interp_readings(t, np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2),
+                                                          default=0.0)
+            enc, la, lg, lt = row["encoding"], row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]
+            if lsb is not None:  # the stored counts as they are: _one_lsb saw one encoding and LSB
+                if block_lsb != lsb:  # only a block written since the count can differ: not read
+                    break
+                accel_counts[sl] = np.frombuffer(row["accel_g"], dtype="<i2").reshape(n, 3)
+                gyro_counts[sl] = np.frombuffer(row["gyro_dps"], dtype="<i2").reshape(n, 3)
+                cols["imu_temp_c"][sl] = np.frombuffer(row["temp_c"], dtype="<i2")
+            else:
+                accel = _decode(row["accel_g"], enc, la, (n, 3))
+                gyro = _decode(row["gyro_dps"], enc, lg, (n, 3))
+                cols["imu_temp_c"][sl] = _decode(row["temp_c"], enc, lt, (n,))
+                for j, c in enumerate(ACCEL_COLUMNS):
+                    cols[c][sl] = accel[:, j]
+                for j, c in enumerate(GYRO_COLUMNS):
+                    cols[c][sl] = gyro[:, j]
             if with_steps:
-                step_idx[sl] = np.nan if b.step_idx is None else b.step_idx
-                kind[sl] = b.kind
+                step_idx[sl] = np.nan if row["step_idx"] is None else row["step_idx"]
+                kind[sl] = row["kind"]
             at += n
-        orientation: Any = pd.Categorical.from_codes(codes[:at], categories=labels)
+        orientation_col: Any = pd.Categorical.from_codes(codes[:at], categories=labels)
         if not categorical:
-            orientation = np.asarray(labels, dtype=object)[codes[:at]]
-        data: dict[str, Any] = {c: (run[:at] if c == "run" else orientation if c == "orientation" else cols[c][:at])
-                                for c in COLUMNS}
+            orientation_col = np.asarray(labels, dtype=object)[codes[:at]]
+        data: dict[str, Any] = {c: (run[:at] if c == "run" else orientation_col if c == "orientation"
+                                    else cols[c][:at]) for c in COLUMNS}
+        if lsb is not None:
+            from labrunner.data_source import ScaledFloatArray
+
+            scale = dict.fromkeys(ACCEL_COLUMNS, lsb[0]) | dict.fromkeys(GYRO_COLUMNS, lsb[1]) | {"imu_temp_c": lsb[2]}
+            data.update({c: ScaledFloatArray(cols[c][:at], s) for c, s in scale.items()})
         if with_steps:
             data.update(kind=kind[:at], state=np.full(at, None, dtype=object), step_idx=step_idx[:at])
         frame = pd.DataFrame(data, copy=False)
@@ -1098,6 +1164,8 @@ class Store:
         transition before it: `mounting` (waiting for the remount temperature, the previous
         orientation still mounted: setpoint `remount_c`), or `ramping`/`soaking` towards the step's
         temperature; the table is stopped then (commanded rate 0)."""
+        import pandas as pd
+
         step = frame["step_idx"].to_numpy(dtype=float).copy()
         monitor = np.isnan(step)
         state = np.full(step.size, "recording", dtype=object)
@@ -1130,15 +1198,26 @@ class Store:
 
     def campaign_data(self, campaign_id: int | None = None, include_monitor: bool = False) -> Any:
         """Samples as validated campaign data with provenance (what `labrunner fit`/`diagnose` read)."""
+        import pandas as pd
+
         from labrunner.campaign_csv import read_campaign
-        from labrunner.data_source import CampaignData
+        from labrunner.data_source import CampaignData, ScaledFloatArray
 
         cid = self.resolve(campaign_id)
         info = self.campaign(cid)
-        frame = self.samples_frame(cid, include_monitor=include_monitor, categorical=True)
+        frame = self.samples_frame(cid, include_monitor=include_monitor, categorical=True, counts=True)
         if frame.empty:
             raise UserError(f"{self.path}: campaign {cid} has no recorded samples yet")
-        frame = read_campaign(frame, name=f"{self.path} campaign {cid}")
+        # Columns of int16 counts are finite by construction; the validation sees a zero-stride stand-in
+        # for them (the value check has nothing to find, and converting them would cost their float64
+        # copies) and every other column and check as a CSV's.
+        # (DataFrame(copy=False) of the columns: `assign` would copy every column it is given.)
+        counted = {c: frame[c].array for c in frame.columns if isinstance(frame[c].array, ScaledFloatArray)
+                   and frame[c].array.counts.dtype.kind in "iu"}
+        stand_in = np.broadcast_to(np.float64(0.0), len(frame))
+        checked = read_campaign(pd.DataFrame({c: stand_in if c in counted else frame[c].array for c in frame.columns},
+                                             copy=False), name=f"{self.path} campaign {cid}")
+        frame = pd.DataFrame({c: counted.get(c, checked[c].array) for c in checked.columns}, copy=False)
         return CampaignData(frame=frame, store=self.path, provenance={
             "source": str(self.path.resolve()), "kind": "store", "campaign_id": cid, "campaign": info.name,
             "procedure_sha256": info.procedure_sha256, "status": info.status, "rows": len(frame),
@@ -1151,8 +1230,11 @@ def _interp_readings(t: np.ndarray, readings: np.ndarray, default: float = float
     """Instrument readings taken during a block, interpolated to the sample times."""
     if readings.size == 0:
         return np.full(t.size, default)
+    first = readings[0, 1]
     if readings.shape[0] == 1:
-        return np.full(t.size, readings[0, 1])
+        return np.full(t.size, first)
+    if (readings[:, 1] == first).all() and not np.signbit(first):
+        return np.full(t.size, first)  # a steady reading (the table's rate): what np.interp gives, without the search
     return np.interp(t, readings[:, 0], readings[:, 1])
 
 

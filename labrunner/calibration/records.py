@@ -130,7 +130,7 @@ class Outputs:
     stacks the selected rows only and `y[rows, k]` is column k's; a campaign's columns are not copied
     into a second (n, 6) array (half a gigabyte at paper scale)."""
 
-    def __init__(self, columns: list[np.ndarray]) -> None:
+    def __init__(self, columns: list[np.ndarray | ScaledColumn]) -> None:
         self.columns = columns
 
     @property
@@ -152,9 +152,51 @@ class Outputs:
         return np.column_stack(self.columns).astype(dtype or float, copy=False)
 
 
+class ScaledColumn:
+    """A float64 column held as integer counts times a scale (a store's IMU channel): `c[rows]` converts
+    the selected rows only, bit for bit what the float64 column holds (`counts * scale`)."""
+
+    dtype = np.dtype(np.float64)
+
+    def __init__(self, counts: np.ndarray, scale: float) -> None:
+        self.counts = counts
+        self.scale = float(scale)
+
+    @property
+    def size(self) -> int:
+        return int(self.counts.size)
+
+    @property
+    def shape(self) -> tuple[int]:
+        return (self.size,)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        return np.multiply(self.counts[key], self.scale, dtype=np.float64)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        values = np.multiply(self.counts, self.scale, dtype=np.float64)
+        return values if dtype is None else values.astype(dtype, copy=False)
+
+
+def _output_column(series: pd.Series) -> np.ndarray | ScaledColumn:
+    """An output column as the analysis reads it: a store's int16 counts stay counts (`ScaledColumn`,
+    converted a chunk at a time), any other column is its float64 array (a view when it is one)."""
+    from labrunner.data_source import ScaledFloatArray
+
+    values = series.array
+    if isinstance(values, ScaledFloatArray) and values.counts.dtype.kind in "iu":
+        return ScaledColumn(values.counts, values.scale)
+    return series.to_numpy(dtype=float)
+
+
 def frame_arrays(frame: pd.DataFrame) -> dict[str, Any]:
     """The numeric columns the analysis needs, as arrays (orientation as an index into ORIENTATIONS,
-    int8; `y` the outputs as `Outputs`). The frame's own float64 and int64 columns are views, not copies."""
+    int8; `y` the outputs as `Outputs`). The frame's own float64 and int64 columns are views, not copies;
+    the outputs of a store's campaign stay its int16 counts (`ScaledColumn`: `y[rows]` converts those
+    rows), the temperature is converted once (the passes over it run on the whole column)."""
     orient = frame["orientation"]
     if isinstance(orient.dtype, pd.CategoricalDtype) and list(orient.cat.categories) == list(ORIENTATIONS):
         codes = orient.cat.codes.to_numpy()
@@ -166,7 +208,7 @@ def frame_arrays(frame: pd.DataFrame) -> dict[str, Any]:
         "orientation": np.asarray(codes),
         "temp": frame["imu_temp_c"].to_numpy(dtype=float),
         "rate": frame["table_rate_dps"].to_numpy(dtype=float),
-        "y": Outputs([frame[c].to_numpy(dtype=float) for c in OUTPUT_COLUMNS]),
+        "y": Outputs([_output_column(frame[c]) for c in OUTPUT_COLUMNS]),
     }
 
 
