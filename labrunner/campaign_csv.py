@@ -7,7 +7,15 @@ column. `write_campaign` writes the format.
 
 from __future__ import annotations
 
+import csv
+import io
+import logging
+import os
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 import pandas as pd
@@ -16,7 +24,13 @@ from labrunner.domain import ACCEL_COLUMNS, GYRO_COLUMNS, ORIENTATIONS, OUTPUT_C
 from labrunner.domain import CSV_COLUMNS as COLUMNS
 from labrunner.errors import UserError
 
-__all__ = ["COLUMNS", "ACCEL_COLUMNS", "GYRO_COLUMNS", "OUTPUT_COLUMNS", "read_campaign", "write_campaign"]
+if TYPE_CHECKING:
+    from labrunner.store import SampleBlock, Store
+
+log = logging.getLogger(__name__)
+
+__all__ = ["COLUMNS", "ACCEL_COLUMNS", "GYRO_COLUMNS", "OUTPUT_COLUMNS", "export_campaign", "read_campaign",
+           "write_campaign"]
 # Columns that must hold a number on every row; chamber_c may be empty (no chamber).
 REQUIRED_NUMERIC = ("t_s", "imu_temp_c", "table_rate_dps") + OUTPUT_COLUMNS
 POWER_ON = "power_on"  # optional column: 1 on the first row after a real power-on, else 0
@@ -47,8 +61,8 @@ _POWER_ON_TEXT = ("0", "0.0", "False", "false") + _TRUE
 def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) -> pd.DataFrame:
     """Load and validate campaign data; sorted as given (time order within each run is checked).
 
-    A CSV is parsed with typed columns first (numbers as float64, orientation and power_on as
-    categories: no Python object per cell); a file that does not parse so is read again as text,
+    A CSV is parsed with typed columns first (numbers as float64, orientation and power_on as text
+    labelled per distinct value); a file that does not parse so is read again as text,
     cell by cell, for the message that names its line and column. A frame whose columns are typed
     already (a store's) is validated without copies."""
     from_csv = not isinstance(source, pd.DataFrame)
@@ -151,10 +165,12 @@ def _backwards(t: np.ndarray, run: np.ndarray, chunk: int = 1 << 20) -> int | No
 
 def _categories(series: pd.Series) -> tuple[np.ndarray, list[str]]:
     """Integer codes and stripped text labels of a column: per distinct value, not per cell."""
-    cat = series.array if isinstance(series.dtype, pd.CategoricalDtype) else pd.Categorical(series)
-    codes = np.asarray(cat.codes)
+    if isinstance(series.dtype, pd.CategoricalDtype):
+        codes, uniques = np.asarray(series.array.codes), series.array.categories
+    else:  # a text column (the typed CSV reader's): one hash pass, no sorting of labels as a Categorical would
+        codes, uniques = pd.factorize(series, use_na_sentinel=True)
     # A missing cell (code -1) reads as the text the row-wise path saw: 'nan'.
-    labels = [str(c).strip() for c in cat.categories] + ["nan"]
+    labels = [str(c).strip() for c in uniques] + ["nan"]
     return codes, labels
 
 
@@ -195,31 +211,315 @@ def _read_typed(path: Path, label: str) -> pd.DataFrame | None:
     """The CSV with numeric columns parsed as float64 by pandas' C reader, or None when a cell is not
     a number (or the file is not a CSV at all): the text reader then says where."""
     try:
-        header = pd.read_csv(path, nrows=0, skipinitialspace=True).columns
+        header = pd.read_csv(path, nrows=0).columns
     except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError, ValueError):
         return None
     names = {str(c).strip(): c for c in header}
     if len(names) != len(header) or any(c not in names for c in COLUMNS):
         return None  # duplicate or missing columns: the text reader's messages
+    # Text columns as object, labelled once per distinct value afterwards: dtype "category" made
+    # pandas' parser ~2x slower. No skipinitialspace either (it slowed the parser by a third): the
+    # C reader takes spaces around numbers, labels are stripped per distinct value, and the cells it
+    # cannot read so (a quoted number after a space, a blank of spaces) fail here or in the
+    # validation, and the text reader reads them.
     dtype: dict[str, object] = {names[c]: float for c in COLUMNS if c != "orientation"}
-    dtype[names["orientation"]] = "category"
+    dtype[names["orientation"]] = object
     wanted = set(COLUMNS)
     if POWER_ON in names:
-        dtype[names[POWER_ON]] = "category"
+        dtype[names[POWER_ON]] = object
         wanted.add(POWER_ON)
     try:
         raw = pd.read_csv(path, dtype=dtype, usecols=[names[c] for c in names if c in wanted],
-                          keep_default_na=False, na_values=list(_EMPTY), skipinitialspace=True)
+                          keep_default_na=False, na_values=list(_EMPTY))
     except (ValueError, pd.errors.ParserError, UnicodeDecodeError, OverflowError):
         return None
     raw.columns = [str(c).strip() for c in raw.columns]
     return raw
 
 
+# --- writing ----------------------------------------------------------------------------------------
+#
+# The format's numbers are '%.9g' (full float32 precision, what the store keeps) and a missing value
+# an empty cell: what `DataFrame.to_csv(float_format="%.9g")` wrote, byte for byte, from Python's own
+# '%' (the same formatting pandas applies per cell). pandas spent ~8 us a row in it (102 s CPU for
+# the paper store); here rows are formatted a chunk at a time: a store's int16 samples once per
+# distinct count (a table of 65 536 cells per LSB size), a column that holds one value in a chunk
+# once, the other numbers by one '%' each, and a chunk's cells joined in one `str.join`.
+
+_EOL = "\n"
+CHUNK_ROWS = 1 << 16  # rows formatted at a time: bounds the writer's memory whatever a block holds
+_I16 = 1 << 15
+
+
+@dataclass(frozen=True)
+class Quantised:
+    """A column of whole counts of `lsb` (an int16 store block's samples decode to counts * lsb)."""
+
+    counts: np.ndarray  # integer
+    lsb: float
+
+
+@dataclass(frozen=True)
+class Labels:
+    """A text column as codes into its distinct cells (already CSV-quoted); code -1 is an empty cell."""
+
+    codes: np.ndarray
+    cells: list[str]
+
+
+# One column of a chunk: float64 numbers ('%.9g', NaN empty), integers, Quantised, Labels, or one
+# cell (already quoted) for every row.
+Cells = np.ndarray | Quantised | Labels | str
+
+
+def quote_cell(text: str) -> str:
+    """`text` as a CSV cell, quoted only where needed (as pandas' to_csv and the csv module write it)."""
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator=_EOL).writerow(["", text])  # a leading empty cell: "" alone is quoted
+    return buf.getvalue()[1:-len(_EOL)]
+
+
+def _escaped(text: str) -> str:
+    return text.replace("%", "%%")
+
+
+class RowFormatter:
+    """Campaign CSV rows from columns of cells (see `Cells`); keeps the tables of quantised cells
+    across chunks, so a campaign's counts are formatted once."""
+
+    def __init__(self) -> None:
+        self._tables: dict[tuple[float, str, str], tuple[np.ndarray, np.ndarray]] = {}
+
+    def rows(self, columns: Sequence[Cells], n: int) -> np.ndarray:
+        """The chunk's cells, separators included, as an (n, k) object array of str: its rows joined
+        in order are the chunk's lines."""
+        # Runs of constant cells and separators merge into the text around the varying columns.
+        parts: list[str | Cells] = []
+        for j, col in enumerate(columns):
+            sep = "," if j + 1 < len(columns) else _EOL
+            if isinstance(col, str):
+                text = col + sep
+                if parts and isinstance(parts[-1], str):
+                    parts[-1] += text
+                else:
+                    parts.append(text)
+            else:
+                parts += [col, sep]
+        varying = [i for i, part in enumerate(parts) if not isinstance(part, str)]
+        if not varying:
+            return np.full((n, 1), "".join(p for p in parts if isinstance(p, str)), dtype=object)
+        out = np.empty((n, len(varying)), dtype=object)
+        for k, i in enumerate(varying):
+            prefix = parts[i - 1] if k == 0 and i > 0 else ""
+            suffix = parts[i + 1] if i + 1 < len(parts) else ""
+            assert isinstance(prefix, str) and isinstance(suffix, str)
+            out[:, k] = self._cells(parts[i], prefix, suffix)  # type: ignore[arg-type]
+        return out
+
+    def _cells(self, col: np.ndarray | Quantised | Labels, prefix: str, suffix: str) -> Any:
+        if isinstance(col, Quantised):
+            return self._quantised(col, prefix, suffix)
+        if isinstance(col, Labels):
+            table = np.array([prefix + c + suffix for c in col.cells] + [prefix + suffix], dtype=object)
+            return table[col.codes]
+        if col.dtype.kind in "iub":
+            distinct, inverse = np.unique(col, return_inverse=True)
+            return np.array([prefix + str(v) + suffix for v in distinct.tolist()], dtype=object)[inverse]
+        values = np.asarray(col, dtype=np.float64)
+        bits = values.view(np.int64)
+        nan = np.isnan(values)
+        if nan.all():
+            return prefix + suffix
+        fmt = _escaped(prefix) + "%.9g" + _escaped(suffix)
+        if not nan.any() and (bits == bits[0]).all():  # one value (bit for bit: -0 is not 0)
+            return fmt % float(values[0])
+        if nan.any():
+            empty = prefix + suffix
+            return [empty if v != v else fmt % v for v in values.tolist()]
+        return [fmt % v for v in values.tolist()]
+
+    def _quantised(self, col: Quantised, prefix: str, suffix: str) -> Any:
+        index = col.counts.astype(np.int64) + _I16
+        key = (col.lsb, prefix, suffix)
+        if key not in self._tables:
+            self._tables[key] = (np.zeros(2 * _I16, dtype=bool), np.empty(2 * _I16, dtype=object))
+        done, table = self._tables[key]
+        new = np.unique(index[~done[index]])
+        if new.size:
+            fmt = _escaped(prefix) + "%.9g" + _escaped(suffix)
+            # The numbers the store's decoding gives (float64 counts times the LSB), formatted as such.
+            table[new] = [fmt % v for v in ((new - _I16).astype(np.float64) * col.lsb).tolist()]
+            done[new] = True
+        return table[index]
+
+
+def quantised(values: np.ndarray, lsb: float | None) -> np.ndarray | Quantised:
+    """`values` as whole counts of `lsb` when they are exactly that (an int16 block's decoded samples),
+    else the values themselves (formatted one by one)."""
+    if lsb is None or values.size == 0:
+        return values
+    counts = np.rint(values / lsb)
+    if np.abs(counts).max() >= _I16 or not np.array_equal(counts * lsb, values):
+        return values
+    return Quantised(counts.astype(np.int64), lsb)
+
+
+def rows_text(rows: np.ndarray) -> str:
+    return "".join(rows.ravel().tolist())
+
+
 def write_campaign(frame: pd.DataFrame, path: str | Path) -> None:
-    """Write a campaign frame in the CSV format (full float precision)."""
+    """Write a campaign frame in the CSV format (float32 precision: '%.9g'), `CHUNK_ROWS` rows at a time."""
     missing = [c for c in COLUMNS if c not in frame.columns]
     if missing:
         raise ValueError("cannot write campaign CSV: missing column(s) " + ", ".join(missing))
     columns = list(COLUMNS) + ([POWER_ON] if POWER_ON in frame.columns else [])
-    frame.loc[:, columns].to_csv(path, index=False, float_format="%.9g")
+    cells = [_frame_column(frame[c]) for c in columns]
+    if any(c is None for c in cells):  # a dtype the chunk writer does not format as pandas does
+        frame.loc[:, columns].to_csv(path, index=False, float_format="%.9g", lineterminator=_EOL)
+        return
+    fmt = RowFormatter()
+    with _output(Path(path)) as out:
+        out.write(",".join(quote_cell(c) for c in columns) + _EOL)
+        for lo in range(0, len(frame), CHUNK_ROWS):
+            hi = min(lo + CHUNK_ROWS, len(frame))
+            out.write(rows_text(fmt.rows([_rows_of(c, lo, hi) for c in cells if c is not None], hi - lo)))
+
+
+def _rows_of(cells: Cells, lo: int, hi: int) -> Cells:
+    if isinstance(cells, Labels):
+        return Labels(cells.codes[lo:hi], cells.cells)
+    if isinstance(cells, Quantised):
+        return Quantised(cells.counts[lo:hi], cells.lsb)
+    if isinstance(cells, str):
+        return cells
+    return cells[lo:hi]
+
+
+def _frame_column(series: pd.Series) -> np.ndarray | Labels | None:
+    """A frame's column as cells, or None when its dtype is one pandas formats otherwise (e.g. nullable
+    integers, dates): the frame is then written by pandas."""
+    dtype = series.dtype
+    if isinstance(dtype, np.dtype) and dtype.kind in "fiub":
+        return series.to_numpy()
+    if isinstance(dtype, pd.CategoricalDtype):
+        codes, uniques = np.asarray(series.array.codes), series.array.categories
+    elif (isinstance(dtype, np.dtype) and dtype.kind == "O") or isinstance(dtype, pd.StringDtype):
+        codes, uniques = pd.factorize(series, use_na_sentinel=True)
+    else:
+        return None
+    if not all(isinstance(u, str) for u in uniques):  # numbers in a text column: pandas' own str()
+        return None
+    return Labels(np.asarray(codes), [quote_cell(u) for u in uniques])
+
+
+@contextmanager
+def _output(path: Path) -> Iterator[TextIO]:
+    """A text file written in full or not at all: a regular file is written beside its place and renamed
+    over it at the end (an export that fails, e.g. on a damaged store, leaves no partial CSV, and an
+    old one in place); anything else (a device, a FIFO) is written directly."""
+    if path.exists() and not path.is_file():
+        with open(path, "w", encoding="utf-8", newline="") as f:
+            yield f
+        return
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)  # the umask's permissions, as open() gives
+    try:
+        with open(fd, "w", encoding="utf-8", newline="") as f:
+            yield f
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+# --- a store's campaign, block by block ---------------------------------------------------------------
+
+
+def export_campaign(store: Store, campaign_id: int, out: str | Path | TextIO, *, include_monitor: bool = False,
+                    force: bool = False) -> int:
+    """Write a stored campaign as campaign CSV (a path or a text stream) block by block; returns the rows.
+
+    The bytes `write_campaign(store.samples_frame(...))` would write, in memory bounded by a block (or
+    `CHUNK_ROWS`) instead of the whole campaign. A path may not be the store (or its -wal/-shm), an
+    existing file is replaced only with `force`, and only once the whole campaign is written."""
+    from labrunner.output_paths import check_output
+
+    kinds = ("record", "monitor") if include_monitor else ("record",)
+    target = check_output(out, store=store.path, force=force, option="--csv") if isinstance(out, str | Path) else None
+    if store.sample_count(campaign_id, kinds) == 0:
+        raise UserError(f"{store.path}: campaign {campaign_id} has no recorded samples to export")
+    if target is None:
+        assert not isinstance(out, str | Path)
+        return write_blocks(store.blocks(campaign_id, kinds), out, time_order=include_monitor)
+    with _output(target) as f:
+        return write_blocks(store.blocks(campaign_id, kinds), f, time_order=include_monitor)
+
+
+def write_blocks(blocks: Iterable[SampleBlock], out: TextIO, *, time_order: bool = False) -> int:
+    """Write sample blocks as campaign CSV, header first; returns the rows written.
+
+    Rows come out in the blocks' order, or with `time_order` (records and monitor rows together) in
+    time order as a stable sort of them all would give (ties in block order). That merge holds back
+    only the rows later than the next block's start: the blocks come in start-time order and a block's
+    samples do not precede its start (its counters ascend)."""
+    fmt = RowFormatter()
+    out.write(",".join(quote_cell(c) for c in COLUMNS) + _EOL)
+    written = 0
+    held: list[tuple[np.ndarray, np.ndarray]] = []  # time_order: rows not yet written, as sorted runs in order
+    ahead = iter(b for b in blocks if len(b))
+    b = next(ahead, None)
+    while b is not None:
+        following = next(ahead, None)  # decoded one block early: its start bounds every later row
+        later = following.t0_s if following is not None else np.inf
+        for t, rows, rest in _chunks(b, fmt):
+            if not time_order:
+                out.write(rows_text(rows))
+                written += t.size
+                continue
+            if held and held[-1][0][-1] > t[0]:  # overlapping rows: merge them (a stable sort)
+                held = [_merge(held + [(t, rows)])]
+            else:
+                held.append((t, rows))
+            bound = min(later, rest)  # no row still to come is earlier
+            while held:
+                t_run, rows_run = held[0]
+                k = int(np.searchsorted(t_run, bound, side="right"))
+                out.write(rows_text(rows_run[:k]))
+                written += k
+                if k < t_run.size:
+                    held[0] = (t_run[k:], rows_run[k:])
+                    break
+                held.pop(0)
+        b = following
+    return written
+
+
+def _chunks(b: SampleBlock, fmt: RowFormatter) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
+    """A block's times and formatted rows `CHUNK_ROWS` at a time, with the time its next chunk starts at
+    (inf for the last); chamber and table readings interpolated to the sample times as
+    `Store.samples_frame` does."""
+    from labrunner.store import _interp_readings
+
+    t_all = b.times()
+    run, orientation = str(b.run), quote_cell(b.orientation)
+    chamber = _interp_readings(t_all, b.chamber)
+    table = _interp_readings(t_all, b.table, default=0.0)
+    lsb = b.lsb or (None, None, None)
+    for lo in range(0, len(b), CHUNK_ROWS):
+        hi = min(lo + CHUNK_ROWS, len(b))
+        sl = slice(lo, hi)
+        t = t_all[sl]
+        cells: list[Cells] = [t, run, orientation, chamber[sl], quantised(b.temp_c[sl], lsb[2]), table[sl]]
+        cells += [quantised(b.accel_g[sl, j], lsb[0]) for j in range(3)]
+        cells += [quantised(b.gyro_dps[sl, j], lsb[1]) for j in range(3)]
+        yield t, fmt.rows(cells, t.size), float(t_all[hi]) if hi < len(b) else np.inf
+
+
+def _merge(runs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Runs of rows merged by time, a stable sort (at equal times the earlier run's row first), each row
+    as one line (the runs' cells may split differently)."""
+    lines = np.array(["".join(r) for _, rows in runs for r in rows.tolist()], dtype=object)
+    t = np.concatenate([t for t, _ in runs])
+    order = np.argsort(t, kind="stable")
+    return t[order], lines[order][:, None]

@@ -280,12 +280,14 @@ def cmd_abort(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from labrunner import api
+    from labrunner.campaign_csv import export_campaign
 
     with api.open(args.db) as db:
         campaign = db.campaign(args.campaign)
         to_stdout = str(args.csv) == "-"
-        rows = campaign.export_csv(sys.stdout if to_stdout else args.csv, include_monitor=args.with_monitor,
-                                   force=args.force)
+        # Block by block from the store (bounded memory), as `Campaign.export_csv` writes the same file.
+        rows = export_campaign(db.store, campaign.id, sys.stdout if to_stdout else args.csv,
+                               include_monitor=args.with_monitor, force=args.force)
     if not to_stdout:
         print(f"wrote {rows:,} rows of campaign {campaign.id} to {args.csv}", file=sys.stderr)
     return 0
