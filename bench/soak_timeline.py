@@ -1,6 +1,7 @@
 """Where a paper campaign's chamber time goes, soak by soak, on the simulated lab's thermal physics.
 
-Usage: python bench/soak_timeline.py [procedures/paper_campaign_fast.yaml ...] [--lag-s 240]
+Usage: python bench/soak_timeline.py [procedures/paper_campaign_fast.yaml ...] [--lag-s 240] [--seed N]
+       [--set soak.KEY=VALUE ...] [--hog]
 
 Replays what the sequencer does between records (ramp: setpoint, poll until the chamber is within
 tolerance; soak: poll and judge with `SoakWindow`; remount: to `remount_c` within 2 C, power cycle)
@@ -10,7 +11,9 @@ table's spin-up, settle_s, record_s) without generating samples: seconds per pro
 dry run's tens of minutes. Prints the time per phase, per-soak statistics (time to decide against the
 IMU's time constant, the remaining drift over the record after the decision) and, for each record, the
 IMU temperature's rate (what a sensing element lagging its sensor by --lag-s turns into a temperature
-error: rate x lag).
+error: rate x lag). `--set` replays variants of the soak section (e.g. `--set soak.predict_lag_s=240`);
+`--hog` runs a CPU hog on a second core meanwhile (`bench.common.cpu_hog`: the replay's CPU time and wall
+time under contention). Each procedure's line ends with the CPU time of its replay and the load.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,7 +32,9 @@ BOOST_MARGIN_C = 0.3  # a boost ends this short of the step: the IMU still gains
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from labrunner.procedure import Procedure, load_procedure  # noqa: E402
+from bench.common import cpu_hog, load_line  # noqa: E402
+from labrunner.errors import UserError  # noqa: E402
+from labrunner.procedure import Procedure, load_procedure, parse_procedure  # noqa: E402
 from labrunner.runner.soak import SoakWindow  # noqa: E402
 from sims.world import SimLabConfig, SimWorld  # noqa: E402
 
@@ -169,16 +175,51 @@ def report(tl: Timeline, lag_s: float) -> None:
           + ", ".join(f"{r.orientation}@{r.setpoint_c:g} {r.ramp_s:.0f}+{r.soak_s:.0f}" for r in orient_first))
 
 
-def main() -> None:
+def with_settings(path: Path, settings: list[str]) -> Procedure:
+    """The procedure at `path` with `soak.KEY=VALUE` settings applied (validated as the file would be)."""
+    proc = load_procedure(path)
+    if not settings:
+        return proc
+    import yaml
+
+    data = yaml.safe_load(proc.text)
+    for item in settings:
+        key, sep, value = item.partition("=")
+        section, _, name = key.partition(".")
+        if not sep or section != "soak" or not name:
+            raise UserError(f"--set {item!r}: expected soak.KEY=VALUE")
+        data.setdefault("soak", {})[name] = yaml.safe_load(value)
+    return parse_procedure(yaml.safe_dump(data, sort_keys=False), f"{path} with {' '.join(settings)}")
+
+
+def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("procedures", nargs="*", type=Path,
                     default=[ROOT / "procedures/paper_campaign.yaml", ROOT / "procedures/paper_campaign_fast.yaml"])
     ap.add_argument("--lag-s", type=float, default=240.0)
     ap.add_argument("--boost-c", type=float, default=0.0, help="try setpoint overshoot by this much (C)")
+    ap.add_argument("--seed", type=int, default=None, help="the simulated lab's seed (default: its own)")
+    ap.add_argument("--set", dest="settings", action="append", default=[], metavar="soak.KEY=VALUE",
+                    help="replay with this soak setting changed (repeatable)")
+    ap.add_argument("--hog", action="store_true", help="run a CPU hog on another core meanwhile")
     args = ap.parse_args()
-    for path in args.procedures:
-        report(replay(load_procedure(path), boost_c=args.boost_c), args.lag_s)
+    config = SimLabConfig(seed=args.seed) if args.seed is not None else None
+    try:
+        procs = [with_settings(path, args.settings) for path in args.procedures]
+    except (UserError, OSError) as exc:
+        print(f"soak_timeline: {exc}", file=sys.stderr)
+        return 2
+    with cpu_hog(args.hog) as hog:
+        for proc in procs:
+            c0 = time.process_time()
+            w0 = time.perf_counter()
+            tl = replay(proc, config, boost_c=args.boost_c)
+            cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+            report(tl, args.lag_s)
+            print(f"  replay: CPU {cpu:.1f} s, wall {wall:.1f} s{' (cpu hog ' + str(hog) + ')' if hog else ''}; "
+                  f"{load_line()}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -130,14 +130,16 @@ def _gains(taus: Sequence[float], horizon_s: float) -> list[np.ndarray]:
 def _lag_gain(tau_s: float, t0_s: float, horizon_s: float, lag_s: float) -> float:
     """The mean over the horizon of (reading - element) for a unit component exp(-t / tau) of the reading.
 
-    The element follows the reading through a first-order lag of `lag_s`; it is started at the window's
-    first reading (`t0_s` < 0) where a first-order lag of a slow approach sits, lag x rate behind the
-    reading (its own transient from before the window decays as exp(-t / lag) and is small by the
-    horizon once the window is a few lags long). Exact for the exponential between readings (a fine grid
-    and the filter's first-order hold): no 1 / (tau - lag) singularity where the two time constants meet."""
-    step = max(min(horizon_s / 30.0, lag_s / 10.0, 5.0), 1e-3)
-    n_past = max(int(math.ceil(-t0_s / step)), 1) + 1
-    grid = np.concatenate([np.linspace(t0_s, 0.0, n_past), np.linspace(0.0, horizon_s, 31)[1:]])
+    The element follows the reading through a first-order lag of `lag_s`. The component is taken back
+    4 min(tau, lag) before the window's first reading (`t0_s` < 0) and the element started there lag x
+    rate behind it: by the window that start has decayed to e^-4 of itself (a slow approach is then lagged
+    by its steady lag x rate x tau / (tau - lag), not the lag x rate a start at the window would give:
+    short by up to a tenth on the simulated lab's remount soaks). Exact for the exponential between grid
+    points (the filter's first-order hold): no 1 / (tau - lag) singularity where the time constants meet."""
+    start = t0_s - 4.0 * min(tau_s, lag_s)
+    step = max(min(horizon_s / 30.0, lag_s / 10.0, tau_s / 10.0, 5.0), 1e-3)
+    n_past = max(int(math.ceil(-start / step)), 1) + 1
+    grid = np.concatenate([np.linspace(start, 0.0, n_past), np.linspace(0.0, horizon_s, 31)[1:]])
     x = np.exp(-grid / tau_s)
     element = first_order_lag(grid, x, lag_s, y0=float(x[0] * (1.0 + lag_s / tau_s)), x0=float(x[0]),
                               t0=float(grid[0]))
