@@ -28,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.common import cpu_hog, load_line  # noqa: E402 (after the path insert)
+from bench.common import cpu_hog, load_line, report  # noqa: E402 (after the path insert)
 from labrunner.discrepancy import Measurements, diagnose  # noqa: E402 (after the path insert)
 from labrunner.discrepancy.allan import TARGET, bases, model_curve, octave_table, stretches  # noqa: E402
 from labrunner.domain import CHANNELS  # noqa: E402 (after the path insert)
@@ -57,6 +57,7 @@ def _run(args: argparse.Namespace) -> int:
     half_width: dict[float, list[float]] = {}  # tau -> the measured interval's relative half-width
     hidden: dict[float, list[tuple[float, float, bool]]] = {}  # tau -> (measured, fitted) / hidden, covered
     fitted_ok = channels = 0  # channels whose fitted curve is within the target of the hidden one at every octave
+    fitted_worst = 0.0  # largest |fitted / hidden - 1| over seeds, channels and octaves
     for seed in seeds:
         frame, truth = log_like(seed, args.hours, continuous=True)
         c0 = time.process_time()
@@ -80,6 +81,7 @@ def _run(args: argparse.Namespace) -> int:
                     (fit.measured.adev[j, i] / true_curve[j, i], fit.after.adev[j, i] / true_curve[j, i], covered))
         within = np.all(np.abs(fit.after.adev / true_curve - 1.0) <= TARGET, axis=0)
         fitted_ok += int(within.sum())
+        fitted_worst = max(fitted_worst, float(np.max(np.abs(fit.after.adev / true_curve - 1.0))))
         channels += within.size
         if args.table:
             for c in CHANNELS:
@@ -117,6 +119,11 @@ def _run(args: argparse.Namespace) -> int:
     if channels:
         print(f"fitted model within {TARGET:.0%} of the hidden noise's curve at every octave: {fitted_ok} of "
               f"{channels} channels")
+        # Issue 11's targets: the fitted noise model within 20 % of the noise (here known), as written against
+        # the measured curve (which scatters by itself at the top octaves), and the parameters within 25 %.
+        report("noise_fitted_vs_hidden_worst", fitted_worst, TARGET, "relative")
+        report("noise_fitted_vs_measured_worst", worst["mismatch"], TARGET, "relative")
+        report("noise_parameter_error_worst", worst["param"], 0.25, "relative")
     return 0
 
 
