@@ -390,8 +390,7 @@ def fit_with_branches(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str
         progress("hysteresis: the fit per branch")
     chosen = inner(model.correct_frame(frame), plain_opt, provenance, progress)
     chosen.branch = report
-    chosen.options = opt
-    chosen.frame = frame
+    chosen.options = opt  # chosen.frame stays the corrected rows: the figures compensate what the models take
     return chosen
 
 
