@@ -269,28 +269,32 @@ def _checked_row(row: Any, path: StoreAddress) -> tuple[float, float, float] | N
     float32), or `StoreDamage` naming its campaign, step and the blob that does not (a short or
     garbled blob would otherwise be a reshape error)."""
     n, enc = row["n"], row["encoding"]
-    where = (f"{path}: campaign {row['campaign_id']}, table sample_blocks, "
-             + (f"step {row['step_idx']}" if row["step_idx"] is not None else f"{row['kind']} block at "
-                f"t={row['t0_s']:.1f} s") + f" (block {row['id']})")
+
+    def damaged(what: str) -> StoreDamage:  # the place named only when there is damage to name
+        where = (f"{path}: campaign {row['campaign_id']}, table sample_blocks, "
+                 + (f"step {row['step_idx']}" if row["step_idx"] is not None else f"{row['kind']} block at "
+                    f"t={row['t0_s']:.1f} s") + f" (block {row['id']})")
+        return StoreDamage(f"{where}: {what}; the store is damaged")
+
     if enc not in ("i16", "f32") or not isinstance(n, int) or n < 0:
-        raise StoreDamage(f"{where}: encoding {enc!r} with {n!r} samples is not one labrunner writes; "
-                          "the store is damaged")
+        raise damaged(f"encoding {enc!r} with {n!r} samples is not one labrunner writes")
     width = 2 if enc == "i16" else 4
-    expected = {"counter": 4 * n, "accel_g": 3 * n * width, "gyro_dps": 3 * n * width, "temp_c": n * width}
-    for column, size in expected.items():
+    expected = (("counter", 4 * n), ("accel_g", 3 * n * width), ("gyro_dps", 3 * n * width), ("temp_c", n * width))
+    for column, size in expected:
         raw = row[column]
         if not isinstance(raw, bytes) or len(raw) != size:
             got = len(raw) if isinstance(raw, bytes) else type(raw).__name__
-            raise StoreDamage(f"{where}: column {column} holds {got} bytes, {n} samples need {size}; "
-                              "the store is damaged")
+            raise damaged(f"column {column} holds {got} bytes, {n} samples need {size}")
     for column in ("chamber", "table"):
         raw = row[column]
         if not isinstance(raw, bytes) or len(raw) % 16:
-            raise StoreDamage(f"{where}: column {column} is not (time, value) float64 pairs; the store is damaged")
-    if enc == "i16" and not all(isinstance(row[c], float) and row[c] > 0 for c in ("accel_lsb", "gyro_lsb",
-                                                                                     "temp_lsb")):
-        raise StoreDamage(f"{where}: int16 samples without their LSB sizes; the store is damaged")
-    return (row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]) if enc == "i16" else None
+            raise damaged(f"column {column} is not (time, value) float64 pairs")
+    if enc != "i16":
+        return None
+    lsb = (row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"])
+    if not all(isinstance(v, float) and v > 0 for v in lsb):
+        raise damaged("int16 samples without their LSB sizes")
+    return lsb
 
 
 def _block_from_row(row: Any, path: StoreAddress) -> SampleBlock:
