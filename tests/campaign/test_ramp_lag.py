@@ -69,6 +69,7 @@ def _short_ramp_campaign() -> str:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # the dry run with its 20 min end holds and the lag search: 270 s at load 10
 def test_a_shortened_ramp_campaign_dry_run_fits_with_the_lag_and_compensates_as_it_fitted(tmp_path):
     proc = tmp_path / "ramp.yaml"
     proc.write_text(_short_ramp_campaign())
