@@ -127,22 +127,27 @@ def _gains(taus: Sequence[float], horizon_s: float) -> list[np.ndarray]:
             np.array([0.0] + [min(horizon_s / tau, 1.0) for tau in taus])]
 
 
+def _lag_factor(tau_s: float, lag_s: float) -> float:
+    """The element's steady offset behind a reading on exp(-t / tau), in lag x rate: tau / (tau - lag) for
+    an approach at least twice the lag's time constant; 2 below (there the readings' history, not the
+    component, sets it, and the component may be one of a near-degenerate pair)."""
+    return tau_s / (tau_s - lag_s) if tau_s >= 2.0 * lag_s else 2.0
+
+
 def _lag_gain(tau_s: float, t0_s: float, horizon_s: float, lag_s: float) -> float:
     """The mean over the horizon of (reading - element) for a unit component exp(-t / tau) of the reading.
 
-    The element follows the reading through a first-order lag of `lag_s`. The component is taken back
-    4 min(tau, lag) before the window's first reading (`t0_s` < 0) and the element started there lag x
-    rate behind it: by the window that start has decayed to e^-4 of itself (a slow approach is then lagged
-    by its steady lag x rate x tau / (tau - lag), not the lag x rate a start at the window would give:
-    short by up to a tenth on the simulated lab's remount soaks). Exact for the exponential between grid
+    The element follows the reading through a first-order lag of `lag_s`, started at the window's first
+    reading (`t0_s` < 0) at its steady offset (`_lag_factor` x lag x rate): a start at lag x rate left the
+    remount soaks' element 8 % further off than predicted; extrapolating the fit back before its readings
+    instead is unsafe for a near-degenerate pair of time constants. Exact for the exponential between grid
     points (the filter's first-order hold): no 1 / (tau - lag) singularity where the time constants meet."""
-    start = t0_s - 4.0 * min(tau_s, lag_s)
     step = max(min(horizon_s / 30.0, lag_s / 10.0, tau_s / 10.0, 5.0), 1e-3)
-    n_past = max(int(math.ceil(-start / step)), 1) + 1
-    grid = np.concatenate([np.linspace(start, 0.0, n_past), np.linspace(0.0, horizon_s, 31)[1:]])
+    n_past = max(int(math.ceil(-t0_s / step)), 1) + 1
+    grid = np.concatenate([np.linspace(t0_s, 0.0, n_past), np.linspace(0.0, horizon_s, 31)[1:]])
     x = np.exp(-grid / tau_s)
-    element = first_order_lag(grid, x, lag_s, y0=float(x[0] * (1.0 + lag_s / tau_s)), x0=float(x[0]),
-                              t0=float(grid[0]))
+    start = float(x[0] * (1.0 + _lag_factor(tau_s, lag_s) * lag_s / tau_s))
+    element = first_order_lag(grid, x, lag_s, y0=start, x0=float(x[0]), t0=float(grid[0]))
     future = grid >= 0.0
     return float(np.mean((x - element)[future]))
 

@@ -21,10 +21,11 @@ RECORD_S = 60.0
 
 def element_offset_closed_form(a: float, tau: float, lag: float, t0: float, horizon: float) -> float:
     """Mean over [0, horizon] of reading - element for a reading a exp(-t / tau) and an element following
-    it through a first-order lag, started at t0 lag x rate behind it (d = A exp(-t/tau) + B exp(-(t-t0)/lag)).
-    The criterion starts it 4 min(tau, lag) before its window's first reading."""
+    it through a first-order lag, started at t0 k x lag x rate behind it (d = A exp(-t/tau) + B exp(-(t-t0)/lag)):
+    k = tau / (tau - lag), its steady offset, for tau >= 2 lag (then B = 0), else 2."""
+    k = tau / (tau - lag) if tau >= 2 * lag else 2.0
     amp = -a * lag / (tau - lag)
-    b = a * math.exp(-t0 / tau) * lag ** 2 / (tau * (tau - lag))
+    b = a * math.exp(-t0 / tau) * (lag / (tau - lag) - k * lag / tau)
     mean_a = amp * tau * (1.0 - math.exp(-horizon / tau)) / horizon
     mean_b = b * math.exp(t0 / lag) * lag * (1.0 - math.exp(-horizon / lag)) / horizon
     return mean_a + mean_b
@@ -37,7 +38,7 @@ def test_the_element_offset_matches_its_closed_form(tau, lag):
     y = 20.0 + a_now * np.exp(-(t - t[-1]) / tau)
     fit = fit_approach(t, y, RECORD_S, 7200.0, "single", lag_s=lag)
     assert isinstance(fit, ApproachFit)
-    want = abs(element_offset_closed_form(a_now, tau, lag, -600.0 - 4.0 * min(tau, lag), RECORD_S))
+    want = abs(element_offset_closed_form(a_now, tau, lag, -600.0, RECORD_S))
     assert fit.lag_c == pytest.approx(want, rel=2e-3)
     assert fit.lag_s == lag and fit.lag_bound_c >= fit.lag_c
     # Without a lag the fit predicts no offset and the bound is the drift's alone.
@@ -65,9 +66,8 @@ def test_a_soak_with_a_known_lag_waits_for_the_element():
     # The reading's approach at the decision, and the element's offset it implies (closed form).
     a_plain = 5.0 * math.exp(-t_plain / 600.0)
     a_lag = 5.0 * math.exp(-t_lag / 600.0)
-    # (a reading on this one exponential since long before: the element at its steady lag)
-    assert abs(element_offset_closed_form(a_plain, 600.0, 240.0, -1e5, RECORD_S)) > 0.5
-    assert abs(element_offset_closed_form(a_lag, 600.0, 240.0, -1e5, RECORD_S)) <= 0.5
+    assert abs(element_offset_closed_form(a_plain, 600.0, 240.0, -600.0, RECORD_S)) > 0.5
+    assert abs(element_offset_closed_form(a_lag, 600.0, 240.0, -600.0, RECORD_S)) <= 0.5
     assert w_lag.prediction.lag_bound_c <= 0.5
     detail = w_lag.prediction.detail()
     assert detail["lag_s"] == 240.0 and 0 < detail["predicted_lag_bound_c"] <= 0.5  # type: ignore[operator]
