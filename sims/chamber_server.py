@@ -14,22 +14,28 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Coroutine
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, TypeVar, cast
 
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerType
+from pymodbus.exceptions import NoSuchIdException
+from pymodbus.framer import FramerRTU, FramerType
+from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
+from pymodbus.simulator.simcore import SimCore
 
 from labrunner.clock import Clock, io_timeouts
 from labrunner.drivers.chamber_profiles import ChamberProfile, ControllerUnits, profile_from
 
 from .aio import LoopThread
+from .links import MemoryPort
 from .world import SimWorld
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")
 READ_FCS = {3, 4}
 WRITE_FCS = {6, 16}
 
@@ -74,13 +80,19 @@ class ChamberServer:
             raise ValueError(f"chamber sim: profile {self.profile.name!r} has no {' or '.join(missing)} register; "
                              "serve it with controller_units C and controller_decimals 1")
         self.requests = 0
-        self._loop = loop or LoopThread("sim-chamber")
-        self._own_loop = loop is None
         regs = self.profile.registers()
         top = max(regs.values()) + self.profile.words + 1
         device = SimDevice(id=device_id, simdata=[SimData(address=0, count=top, values=0, datatype=DataType.REGISTERS)],
                            action=self._action)
         self._device = device
+        self.line: ModbusLine | None = None
+        if transport == "memory":  # a dry run's RTU line inside the process: answered in the driver's thread
+            self.line = ModbusLine(device, MemoryPort("chamber"), self)
+            self.port = 0
+            log.info("chamber sim: Modbus RTU on %s, profile %s", self.line.port.url, self.profile.name)
+            return
+        self._loop = loop or LoopThread("sim-chamber")
+        self._own_loop = loop is None
         self._server = self._loop.run(self._start(device, port))
         # pymodbus keeps the listening asyncio.Server as the protocol's `transport` (typed BaseTransport).
         self.port = int(cast(asyncio.Server, self._server.transport).sockets[0].getsockname()[1])
@@ -102,6 +114,8 @@ class ChamberServer:
 
     @property
     def url(self) -> str:
+        if self.line is not None:
+            return self.line.port.url
         return f"socket://{self.host}:{self.port}" if self.transport == "rtu" else f"{self.host}:{self.port}"
 
     # --- the register hook ------------------------------------------------------------
@@ -188,6 +202,10 @@ class ChamberServer:
 
     def drop_connections(self) -> int:
         """Close every client connection (the client sees the link drop)."""
+        if self.line is not None:
+            was = self.line.port.connected
+            self.line.port.disconnect()
+            return int(was)
         async def drop() -> int:
             conns = list(self._server.active_connections.values())
             for c in conns:
@@ -200,6 +218,9 @@ class ChamberServer:
     def refuse_connections(self, refuse: bool) -> None:
         """Fault: stop listening (connects are refused) and drop clients; or listen again."""
         log.debug("chamber sim: %s connections", "refusing" if refuse else "accepting")
+        if self.line is not None:
+            self.line.port.refuse(refuse)
+            return
 
         async def toggle() -> None:
             if refuse and self._server.transport is not None:
@@ -212,6 +233,9 @@ class ChamberServer:
         self._loop.run(toggle())
 
     def close(self) -> None:
+        if self.line is not None:
+            self.line.port.close()
+            return
         try:
             self._loop.run(self._server.shutdown())
         except Exception:
@@ -226,3 +250,59 @@ def _free_port(host: str) -> int:
     with socket.socket() as s:
         s.bind((host, 0))
         return s.getsockname()[1]
+
+
+class ModbusLine:
+    """A dry run's chamber on a Modbus RTU line inside the process (`MemoryPort`), served in the driver's thread.
+
+    The request's bytes are framed and decoded by pymodbus' own server-side RTU framer and PDU decoder,
+    answered from the same simulated device and register hook as the asyncio server's, and the reply
+    frame is built by the same framer: what pymodbus' `ServerRequestHandler` does, without the event
+    loop and its thread (the hook never waits). A silent controller (`ChamberFaults.silent`) leaves
+    the request unanswered and drops the line, as the served one closes its connections.
+    """
+
+    def __init__(self, device: SimDevice, port: MemoryPort, server: ChamberServer) -> None:
+        self.port = port
+        self._server = server
+        self._core = SimCore(device)
+        self._framer = FramerRTU(DecodePDU(True))
+        self._buf = b""
+        port.attach_server(self.receive)
+
+    def receive(self, data: bytes) -> None:
+        self._buf += data
+        while self._buf:
+            used, pdu = self._framer.handleFrame(self._buf, 0, 0)
+            self._buf = self._buf[used:]
+            if pdu is None:
+                return
+            if self._server.faults.silent:
+                self._server.requests += 1
+                io_timeouts.withhold(self.port.url)  # the driver stops waiting now, in virtual time
+                self._buf = b""
+                self.port.disconnect()
+                return
+            response = self._answer(pdu)
+            response.transaction_id = pdu.transaction_id
+            response.dev_id = pdu.dev_id
+            self.port.write(self._framer.buildFrame(response))
+
+    def _answer(self, pdu: ModbusPDU) -> ModbusPDU:
+        try:
+            return _run_now(pdu.datastore_update(self._core, pdu.dev_id))  # type: ignore[arg-type]
+        except NoSuchIdException:
+            return ExceptionResponse(pdu.function_code, ExcCodes.GATEWAY_NO_RESPONSE)
+        except Exception as exc:  # as pymodbus' handler: the device failed, the client is told so
+            log.error("chamber sim: request failed: %s", exc)
+            return ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
+
+
+def _run_now(coro: Coroutine[Any, Any, T]) -> T:
+    """The result of a coroutine that never waits (the datastore and its register hook)."""
+    try:
+        coro.send(None)
+    except StopIteration as done:
+        return cast(T, done.value)
+    coro.close()
+    raise RuntimeError("a simulated chamber request waited for the event loop")

@@ -54,8 +54,10 @@ class SimLab:
         self.config = config
         self.clock = clock
         self.world = SimWorld(config, clock.now())
-        self.loop = LoopThread("sim-modbus")
-        self.chamber = ChamberServer(self.world, clock, chamber_profile, transport=chamber_transport, host=host,
+        # On memory links the chamber is Modbus RTU inside the process too: no event loop thread.
+        served = "memory" if link == "memory" else chamber_transport
+        self.loop = LoopThread("sim-modbus") if served != "memory" else None
+        self.chamber = ChamberServer(self.world, clock, chamber_profile, transport=served, host=host,
                                      port=ports.chamber, loop=self.loop)
         # On a virtual clock a dry run waits for its reader however slow the machine is (the safety net
         # only catches a hang); served in real time, a line with nobody reading loses its bytes.
@@ -86,7 +88,7 @@ class SimLab:
         self._apply_starting_faults(config.faults.get("chamber") or {})
         self.host = host
         self.link = link
-        self.chamber_transport = chamber_transport
+        self.chamber_transport = served
         self.chamber_profile = chamber_profile
         log.info("simulated lab up: chamber %s (%s), table %s, imu %s", self.chamber.url, chamber_transport,
                  self.table_port.url, self.imu_port.url)
@@ -135,6 +137,8 @@ class SimLab:
         """A lab configuration (see `labrunner.lab`) that points the drivers at these sims."""
         if self.chamber_transport == "tcp":
             chamber: dict[str, Any] = {"transport": "tcp", "host": self.host, "port": self.chamber.port}
+        elif self.chamber_transport == "memory":
+            chamber = {"transport": "rtu", "serial_port": self.chamber.url, "baudrate": 115200}
         else:
             chamber = {"transport": "rtu", "serial_port": self.chamber.url, "baudrate": 115200}
         if self.chamber_profile in ("watlow_f4", "watlow_f4t"):  # a controller with its own driver
@@ -179,7 +183,8 @@ class SimLab:
         self.chamber.close()
         self.table_port.close()
         self.imu_port.close()
-        self.loop.stop()
+        if self.loop is not None:
+            self.loop.stop()
         for url in self._virtual_links:
             io_timeouts.release(url)
         self._virtual_links = []

@@ -70,6 +70,8 @@ class Serial(SerialBase):
         return self._the_end().waiting
 
     def read(self, size: int = 1) -> bytes:
+        if size <= 0:
+            return b""
         try:
             return self._the_end().take(size, self._timeout)
         except ConnectionResetError as exc:
