@@ -79,6 +79,13 @@ class RbfModel:
         else:
             out = y.copy()
             extrap = (temp_c < self.t_min_c) | (temp_c > self.t_max_c)
+        for lo in range(0, y.shape[0], DISTINCT_CHUNK):
+            rows = slice(lo, lo + DISTINCT_CHUNK)
+            self._add_networks(y[rows], temp_c[rows], out[rows], extrap[rows])
+        return Compensated(values=out, extrapolated=extrap)
+
+    def _add_networks(self, y: np.ndarray, temp_c: np.ndarray, out: np.ndarray, extrap: np.ndarray) -> None:
+        """Add the networks' corrections to `out` and their extrapolation flags to `extrap` (in place)."""
         columns = {c: (y[:, c] if c >= 0 else temp_c) for c in range(-1, 6)}
         distinct = _Distinct(columns)
         for k, net in enumerate(self.networks):
@@ -96,7 +103,6 @@ class RbfModel:
                 x = np.clip(x, net.input_min, net.input_max)
             pred = net.predict(x)
             out[:, k] += pred if found is None else pred[found[1]]
-        return Compensated(values=out, extrapolated=extrap)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -141,6 +147,7 @@ def input_columns(variant: str, channel: int) -> tuple[int, ...]:
 
 DISTINCT_MIN_ROWS = 4096  # below this, evaluating every row costs less than finding the distinct ones
 DISTINCT_MAX_FRACTION = 0.5  # more distinct inputs than this fraction of the rows: evaluate every row
+DISTINCT_CHUNK = 1 << 18  # rows searched for distinct inputs at a time: the hash tables stay in cache
 
 
 class _Distinct:
