@@ -5,7 +5,9 @@ document (its exported model: the network if one was exported, else the polynomi
 data comes out with its compensated outputs (`<column>_comp`) and a flag, `extrapolated`, for rows whose
 temperature (or network input) lies outside what the model was fitted to: flagged, not refused.
 A model fitted at the lag-corrected temperature carries its `temperature_filter`: the rows' temperature
-goes through it (per run, at the rows' times) before the model, as in the fit and the C header.
+goes through it (per run, at the rows' times) before the model, as in the fit and the C header. A model
+fitted per hysteresis branch carries its `branch_state`: the rows' outputs less width/2 x their branch
+state go into the model.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import pandas as pd
 from labrunner.campaign_csv import OUTPUT_COLUMNS
 from labrunner.errors import UserError
 
+from .branch_fit import BranchModel, branch_model_from_dict
 from .compensation import compensate
 from .export import FORMAT, filter_from_dict, model_from_dict
 from .ins import DEFAULT_WINDOW_S, InsErrors, ins_errors, window_rows
@@ -41,6 +44,7 @@ class ModelFile:
     name: str  # "polynomial", "rbf_hybrid", ...
     path: str
     temperature_filter: TemperatureFilter | None = None  # the model's temperature: the logged one through it
+    branch: BranchModel | None = None  # the model's outputs: the logged ones less the branch offset
 
     def model_temperature(self, frame: pd.DataFrame) -> np.ndarray:
         """The temperature the model takes for the frame's rows (lag-corrected if the model says so)."""
@@ -48,6 +52,14 @@ class ModelFile:
         if self.temperature_filter is None:
             return temp
         return self.temperature_filter.apply(frame["t_s"].to_numpy(dtype=float), temp, frame["run"].to_numpy())
+
+    def model_outputs(self, frame: pd.DataFrame, y: np.ndarray) -> np.ndarray:
+        """The outputs the model takes for the frame's rows `y` (less the branch offset if the model says so)."""
+        if self.branch is None:
+            return y
+        s = self.branch.state.states(frame["t_s"].to_numpy(dtype=float), frame["imu_temp_c"].to_numpy(dtype=float),
+                                     frame["run"].to_numpy(), frame["orientation"].astype(str).to_numpy())
+        return self.branch.correct(y, s)
 
     @property
     def temp_range_c(self) -> tuple[float, float]:
@@ -83,10 +95,11 @@ def read_model(path: str | Path) -> ModelFile:
     try:
         model = model_from_dict(d)
         temperature_filter = filter_from_dict(d)
+        branch = branch_model_from_dict(d)
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise UserError(f"{p}: the model is incomplete or malformed ({type(exc).__name__}: {exc})") from None
     name = "polynomial" if isinstance(model, PolyModel) else f"rbf_{model.variant}"
-    return ModelFile(model=model, name=name, path=str(p), temperature_filter=temperature_filter)
+    return ModelFile(model=model, name=name, path=str(p), temperature_filter=temperature_filter, branch=branch)
 
 
 @dataclass(frozen=True)
@@ -110,7 +123,7 @@ def compensate_data(model: ModelFile, frame: pd.DataFrame) -> CompensatedData:
     """The same rows with `<output>_comp` columns and `extrapolated` (0/1) added."""
     y = np.column_stack([frame[c].to_numpy(dtype=float) for c in OUTPUT_COLUMNS])
     temp = frame["imu_temp_c"].to_numpy(dtype=float)
-    comp = compensate(model.model, y, model.model_temperature(frame))
+    comp = compensate(model.model, model.model_outputs(frame, y), model.model_temperature(frame))
     out = frame.copy()
     for j, c in enumerate(OUTPUT_COLUMNS):
         out[c + COMP_SUFFIX] = comp.values[:, j]
@@ -133,5 +146,6 @@ def ins_of(model: ModelFile, frame: pd.DataFrame, window_s: float = DEFAULT_WIND
     if win.size == 0:
         return {}
     rows = win.ravel()
-    comp = compensate(model.model, a["y"][rows], model.model_temperature(frame)[rows]).values
+    y = a["y"][rows] if model.branch is None else model.model_outputs(frame, np.asarray(a["y"]))[rows]
+    comp = compensate(model.model, y, model.model_temperature(frame)[rows]).values
     return ins_errors(a, win, {"raw": a["y"][rows], model.name: comp}, window_s)

@@ -47,7 +47,8 @@ def _options(args: argparse.Namespace) -> FitOptions:
             raise UserError(f"--thermal-lag must be a time constant in s, 'auto' or {DIAGNOSIS_PREFIX}DIAG.json "
                             f"(the thermal_lag finding of `labrunner diagnose --json`), not {lag!r}") from None
     return FitOptions(poly_order=order, poly_method=args.poly_method, rbf_variants=variants, rbf_export=export,
-                      evaluate=not args.no_eval, splits=splits, seed=args.seed, thermal_lag_s=lag)
+                      evaluate=not args.no_eval, splits=splits, seed=args.seed, thermal_lag_s=lag,
+                      branch_fit=args.hysteresis)
 
 
 def run(args: argparse.Namespace) -> int:

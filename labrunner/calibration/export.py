@@ -13,6 +13,9 @@ LR_USE_DOUBLE is defined before the include.
 A model fitted at the lag-corrected temperature (`thermal_lag_fit.TemperatureFilter`) carries its filter:
 `temperature_filter` in the JSON model, and in the header a first-order filter state with
 `<prefix>temp_filter_init` and `<prefix>temp_filter_update` whose output is the temp_c to pass.
+A model fitted per hysteresis branch (`branch_fit.BranchModel`) carries `branch_state`, and the header a
+branch state (`<prefix>branch_init`, `<prefix>branch_update`: the filtered dT/dt against its threshold) and
+`<prefix>branch_correct`, whose output is the y to pass.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from .branch_fit import BranchModel
 from .rbf_model import RbfModel
 from .thermal_lag_fit import TemperatureFilter
 from .thermal_poly import PolyModel, TriadPoly
@@ -31,18 +35,21 @@ FORMAT = "labrunner-calibration-model/1"
 
 
 def model_to_json(model: PolyModel | RbfModel, provenance: dict[str, Any] | None = None,
-                  temperature_filter: TemperatureFilter | None = None) -> dict[str, Any]:
+                  temperature_filter: TemperatureFilter | None = None,
+                  branch: BranchModel | None = None) -> dict[str, Any]:
     from .fit import json_clean
 
     d = model.to_dict()
     if temperature_filter is not None:
         d["temperature_filter"] = temperature_filter.to_dict()
+    if branch is not None:
+        d["branch_state"] = branch.to_dict()
     return json_clean({"format": FORMAT, "provenance": provenance or {}, "model": d})
 
 
 def save_model(model: PolyModel | RbfModel, path: str | Path, provenance: dict[str, Any] | None = None,
-               temperature_filter: TemperatureFilter | None = None) -> None:
-    Path(path).write_text(json.dumps(model_to_json(model, provenance, temperature_filter), indent=1,
+               temperature_filter: TemperatureFilter | None = None, branch: BranchModel | None = None) -> None:
+    Path(path).write_text(json.dumps(model_to_json(model, provenance, temperature_filter, branch), indent=1,
                                      allow_nan=False))
 
 
@@ -296,7 +303,8 @@ def _filter_section(p: str, f: TemperatureFilter) -> list[str]:
 
 
 def c_header(poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
-             comment: str = "", temperature_filter: TemperatureFilter | None = None) -> str:
+             comment: str = "", temperature_filter: TemperatureFilter | None = None,
+             branch: BranchModel | None = None) -> str:
     """The C header text for the given models (either may be None)."""
     guard = f"{prefix.upper()}CALIBRATION_H"
     lines = [
@@ -311,6 +319,10 @@ def c_header(poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
     lines += [f"#ifndef {guard}", f"#define {guard}", _COMMON]
     if temperature_filter is not None:
         lines += _filter_section(prefix, temperature_filter) + [""]
+    if branch is not None:
+        from .branch_fit import c_section
+
+        lines += c_section(prefix, branch, _num) + [""]
     if poly is not None:
         lines += _poly_section(prefix, poly) + [""]
     if rbf is not None:
@@ -320,5 +332,6 @@ def c_header(poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
 
 
 def write_c_header(path: str | Path, poly: PolyModel | None, rbf: RbfModel | None, prefix: str = "lr_",
-                   comment: str = "", temperature_filter: TemperatureFilter | None = None) -> None:
-    Path(path).write_text(c_header(poly, rbf, prefix, comment, temperature_filter))
+                   comment: str = "", temperature_filter: TemperatureFilter | None = None,
+                   branch: BranchModel | None = None) -> None:
+    Path(path).write_text(c_header(poly, rbf, prefix, comment, temperature_filter, branch))

@@ -14,6 +14,7 @@ from labrunner.blas_threads import analysis_threads
 from labrunner.errors import UserError
 from labrunner.version import __version__
 
+from .branch_fit import BranchModel, BranchReport, fit_with_branches
 from .evaluation import SPLITS, SplitResult, evaluate
 from .gain import GainCheck, check_models
 from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_model
@@ -46,6 +47,8 @@ class FitOptions:
     # Thermal lag of the sensing element (s), or "auto" (searched), or None: the models see the logged
     # temperature. With a lag, the lag-corrected fit is used when it gains (thermal_lag_fit.py).
     thermal_lag_s: float | str | None = None
+    # Hysteresis: fit per heating/cooling branch where that gains on held-out records (branch_fit.py).
+    branch_fit: bool = False
 
     def __post_init__(self) -> None:
         if self.thermal_lag_s is not None and self.thermal_lag_s != "auto":
@@ -162,6 +165,13 @@ class FitResult:
     gains: dict[str, GainCheck] = field(default_factory=dict)
     # With FitOptions.thermal_lag_s: tau, its held-out gain over the plain fit and whether it is used.
     thermal_lag: LagReport | None = None
+    # With FitOptions.branch_fit: the branch estimator, the widths, their held-out gain, whether used.
+    branch: BranchReport | None = None
+
+    @property
+    def branch_model(self) -> BranchModel | None:
+        """The branch the exported models take their outputs less (None: fitted without branches)."""
+        return self.branch.model if self.branch else None
 
     @property
     def temperature_filter(self) -> TemperatureFilter | None:
@@ -237,6 +247,8 @@ class FitResult:
         out = list(self.models.notes)
         if self.thermal_lag is not None:
             out.append(self.thermal_lag.sentence())
+        if self.branch is not None:
+            out.append(self.branch.sentence())
         for p in self.polynomial.triads().values():
             out.extend(p.notes)
         for m in self.models.rbf.values():
@@ -251,6 +263,9 @@ class FitResult:
         if self.temperature_filter is not None:
             for d in out.values():
                 d["temperature_filter"] = self.temperature_filter.to_dict()
+        if self.branch_model is not None:
+            for d in out.values():
+                d["branch_state"] = self.branch_model.to_dict()
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -275,6 +290,7 @@ class FitResult:
             "not_exported": self.not_exported,
             "timings_s": self.timings_s,
             "thermal_lag": self.thermal_lag.to_dict() if self.thermal_lag else None,
+            "branch": self.branch.to_dict() if self.branch else None,
         })
 
 
@@ -332,9 +348,17 @@ def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provena
     """
     opt = options or FitOptions()
     with analysis_threads():
-        if opt.thermal_lag_s is not None:
-            return fit_with_lag(frame, opt, provenance, progress, _fit_campaign)
-        return _fit_campaign(frame, opt, provenance, progress)
+        if opt.branch_fit:
+            return fit_with_branches(frame, opt, provenance, progress, _fit_inner)
+        return _fit_inner(frame, opt, provenance, progress)
+
+
+def _fit_inner(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str, Any] | None,
+               progress: Progress | None) -> FitResult:
+    """The fit at the logged or, with a thermal lag, the lag-corrected temperature."""
+    if opt.thermal_lag_s is not None:
+        return fit_with_lag(frame, opt, provenance, progress, _fit_campaign)
+    return _fit_campaign(frame, opt, provenance, progress)
 
 
 def _fit_campaign(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str, Any] | None,

@@ -51,13 +51,14 @@ def write_fit_files(result: FitResult, out: Path, summary: str | None = None) ->
     out.mkdir(parents=True, exist_ok=True)
     prov = result.export_provenance()
     lag = result.temperature_filter  # the models' temperature filter (a thermal lag used), or None
-    save_model(result.polynomial, out / "polynomial.json", prov, lag)
+    branch = result.branch_model  # the outputs' branch offset (hysteresis fitted per branch), or None
+    save_model(result.polynomial, out / "polynomial.json", prov, lag, branch)
     written = ["polynomial.json"]
     if result.rbf is not None:
-        save_model(result.rbf, out / "rbf.json", prov, lag)
+        save_model(result.rbf, out / "rbf.json", prov, lag, branch)
         written.append("rbf.json")
     write_c_header(out / "imu_calibration.h", result.polynomial, result.rbf, comment=header_comment(result),
-                   temperature_filter=lag)
+                   temperature_filter=lag, branch=branch)
     figures, section = draw_figures(result, out)
     text = summary if summary is not None else summary_markdown(result)
     (out / "summary.md").write_text(text + "\n\n" + section + "\n")
