@@ -290,16 +290,11 @@ class Campaign:
 
     def export_csv(self, path: Any, include_monitor: bool = False, force: bool = False) -> int:
         """Write the campaign CSV format (a path or a text stream); returns the number of rows. A path
-        may not be the store (or its -wal/-shm), and an existing file is overwritten only with `force`."""
-        from labrunner.campaign_csv import write_campaign
+        may not be the store (or its -wal/-shm), and an existing file is overwritten only with `force`.
+        Written block by block from the store (bounded memory), as `labrunner export` does."""
+        from labrunner.campaign_csv import export_campaign
 
-        if isinstance(path, (str, Path)):
-            path = check_output(path, store=self.db.path, force=force, option="--csv")
-        frame = self._store.samples_frame(self.id, include_monitor=include_monitor)
-        if frame.empty:
-            raise UserError(f"{self.db.path}: campaign {self.id} has no recorded samples to export")
-        write_campaign(frame, path)
-        return len(frame)
+        return export_campaign(self._store, self.id, path, include_monitor=include_monitor, force=force)
 
     def status_report(self, events: int = 8) -> CampaignStatus:
         """Progress, state, ETA and recent events (see `labrunner.status`)."""
