@@ -33,7 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import load_line, report  # noqa: E402
+from bench.common import cpu_hog, load_line, report  # noqa: E402
 from labrunner.campaign_csv import read_campaign, write_campaign  # noqa: E402
 from labrunner.data_source import load_campaign_data  # noqa: E402
 
@@ -121,7 +121,15 @@ def main() -> int:
     ap.add_argument("--data", default="/tmp/paper/paper.db", help="a labrunner SQLite store (a recorded campaign)")
     ap.add_argument("--csv-rows", type=int, default=2_000_000, help="rows of the store written to the CSV")
     ap.add_argument("--repeat", type=int, default=3, help="paired runs of each (medians compared)")
+    ap.add_argument("--hog", action="store_true", help="run beside a second process spinning on one core")
     args = ap.parse_args()
+    with cpu_hog(args.hog) as hog:
+        if hog is not None:
+            print(f"cpu hog running (pid {hog})")
+        return _bench(args)
+
+
+def _bench(args: argparse.Namespace) -> int:
     db = Path(args.data)
     if not db.is_file():
         print(f"bench_load: {db}: no such store; record one (labrunner run procedures/paper_campaign.yaml --sim "
