@@ -4,7 +4,9 @@ their simulation for a dry run), stores every sample, and fits and diagnoses the
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import io
 import logging
 import os
 import re
@@ -116,8 +118,25 @@ def log_level(args: argparse.Namespace) -> str:
     return {0: "WARNING", 1: "INFO"}.get(args.verbose, "DEBUG")
 
 
+class _ClosedStream(io.TextIOBase):
+    """What stdout is when the shell closed it (`>&-`; Python then sets sys.stdout to None): writing to it is a
+    closed pipe (nothing printed, EXIT_BROKEN_PIPE), and a command that writes nothing runs as usual."""
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, s: str) -> int:
+        raise BrokenPipeError(errno.EPIPE, "standard output is closed")
+
+    @property
+    def buffer(self) -> io.TextIOBase:
+        return self
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; returns the exit code (README, "Commands"). Never raises but SystemExit."""
+    if sys.stdout is None:
+        sys.stdout = _ClosedStream()
     try:
         try:
             return _main(argv)
