@@ -18,7 +18,7 @@ import threading
 import time
 import tty
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 import serial
 
@@ -38,7 +38,29 @@ class SimPort(Protocol):
     def close(self) -> None: ...
 
 
-class TcpSerialPort:
+class _ClientSlot:
+    """A served line's one client and its refuse fault (`refuse(on)` is each line's own)."""
+
+    _client: Any
+    _refusing: bool
+
+    @property
+    def connected(self) -> bool:
+        return self._client is not None
+
+    @property
+    def refusing(self) -> bool:
+        return self._refusing
+
+    @refusing.setter
+    def refusing(self, on: bool) -> None:
+        self.refuse(on)
+
+    def refuse(self, on: bool) -> None:
+        raise NotImplementedError
+
+
+class TcpSerialPort(_ClientSlot):
     """One serial line served on a TCP port; a new client replaces the previous one.
 
     A connection the kernel has completed is taken before each write and read, not only by the
@@ -106,18 +128,6 @@ class TcpSerialPort:
             log.debug("sim port %s: client connected%s", self.url, " (replacing the previous one)" if old else "")
             if old is not None:
                 old.close()
-
-    @property
-    def connected(self) -> bool:
-        return self._client is not None
-
-    @property
-    def refusing(self) -> bool:
-        return self._refusing
-
-    @refusing.setter
-    def refusing(self, on: bool) -> None:
-        self.refuse(on)
 
     def refuse(self, on: bool) -> None:
         """Fault: stop listening (connects are refused) and drop the client; or listen again on the same port."""
@@ -286,7 +296,7 @@ class PtyPort:
                 pass
 
 
-class MemoryPort:
+class MemoryPort(_ClientSlot):
     """One serial line inside the process, for a dry run on a virtual clock (`labsim://NAME-N`).
 
     The driver opens `url` with `serial.serial_for_url` as it opens any line (pyserial finds
@@ -340,18 +350,6 @@ class MemoryPort:
     def end_closed(self, end: MemoryEnd) -> None:
         if self._client is end:
             self._client = None
-
-    @property
-    def connected(self) -> bool:
-        return self._client is not None
-
-    @property
-    def refusing(self) -> bool:
-        return self._refusing
-
-    @refusing.setter
-    def refusing(self, on: bool) -> None:
-        self.refuse(on)
 
     def refuse(self, on: bool) -> None:
         """Fault: drop the client and refuse opens; or accept them again."""
