@@ -28,11 +28,12 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+PREDICTIVE_LIMIT_H = 96.0  # issue 16
 BOOST_MARGIN_C = 0.3  # a boost ends this short of the step: the IMU still gains it while the air comes back
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import cpu_hog, load_line  # noqa: E402
+from bench.common import cpu_hog, load_line, report  # noqa: E402
 from labrunner.errors import UserError  # noqa: E402
 from labrunner.procedure import Procedure, load_procedure, parse_procedure  # noqa: E402
 from labrunner.runner.soak import SoakWindow  # noqa: E402
@@ -150,7 +151,7 @@ def replay(proc: Procedure, config: SimLabConfig | None = None, boost_c: float =
     return tl
 
 
-def report(tl: Timeline, lag_s: float) -> None:
+def print_timeline(tl: Timeline, lag_s: float) -> None:
     h = 3600.0
     print(f"{tl.name}: {tl.total_s / h:.1f} lab h = remounts {tl.remount_s / h:.1f} + ramps {tl.ramp_s / h:.1f} + "
           f"soaks {tl.soak_s / h:.1f} + records {tl.records_s / h:.1f}")
@@ -215,9 +216,11 @@ def main() -> int:
             w0 = time.perf_counter()
             tl = replay(proc, config, boost_c=args.boost_c)
             cpu, wall = time.process_time() - c0, time.perf_counter() - w0
-            report(tl, args.lag_s)
+            print_timeline(tl, args.lag_s)
             print(f"  replay: CPU {cpu:.1f} s, wall {wall:.1f} s{' (cpu hog ' + str(hog) + ')' if hog else ''}; "
                   f"{load_line()}")
+            if proc.model.soak.criterion == "predictive":  # issue 16: the predictive paper campaign in <= 4 lab-days
+                report(f"{tl.name} lab time (replay)", tl.total_s / 3600.0, PREDICTIVE_LIMIT_H, "lab h")
     return 0
 
 
