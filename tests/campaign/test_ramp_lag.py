@@ -135,27 +135,15 @@ def test_a_soak_campaigns_records_are_compensated_at_the_soaked_element_temperat
     first record of every soak ~(20 C / gap) x tau behind, heating and cooling with opposite signs."""
     from labrunner.calibration.apply import ModelFile
     from labrunner.calibration.thermal_lag_fit import TemperatureFilter
-    from labrunner.cli import main
-    from labrunner.imu.model import ImuInputs
     from labrunner.imu.recursions import first_order_lag
-    from labrunner.sims.world import SimLabConfig, SimWorld
+    from labrunner.sims.world import SimLabConfig
+
+    from .sim_truth import dry_run_with_truth
 
     proc, sim, db = tmp_path / "soaks.yaml", tmp_path / "sim.json", tmp_path / "s.db"
     proc.write_text(SOAKS)
     sim.write_text(json.dumps({"seed": 6, "imu_model": {"effects": {"thermal_lag": {"tau_s": 240.0}}}}))
-    fed: list[ImuInputs] = []
-    real = SimWorld.imu_inputs
-
-    def recording(self: SimWorld, times: np.ndarray) -> ImuInputs:
-        out = real(self, times)
-        fed.append(out)
-        return out
-
-    monkeypatch.setattr(SimWorld, "imu_inputs", recording)
-    assert main(["run", str(proc), "--sim", "--sim-config", str(sim), "--seed", "6", "--db", str(db),
-                 "--quiet"]) == 0
-    truth = ImuInputs(**{f: np.concatenate([np.asarray(getattr(p, f)) for p in fed])
-                         for f in ("t_s", "run", "t_on_s", "temp_c", "force_g", "rate_dps")})
+    truth = dry_run_with_truth(monkeypatch, proc, sim, db, 6)
     element = SimLabConfig.from_dict(json.loads(sim.read_text())).imu_model.element_temperature(truth)
     frame = load_campaign_data(db).frame
     t = frame.t_s.to_numpy()

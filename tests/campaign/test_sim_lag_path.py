@@ -18,11 +18,10 @@ import numpy as np
 import pytest
 
 from labrunner.calibration.thermal_lag_fit import lag_corrected_temperature
-from labrunner.cli import main
 from labrunner.data_source import load_campaign_data
-from labrunner.imu.model import ImuInputs
-from labrunner.sims.world import SimLabConfig, SimWorld
+from labrunner.sims.world import SimLabConfig
 
+from .sim_truth import dry_run_with_truth
 from .test_ramp_campaign import RAMP
 
 EFFECTS = {"thermal_lag": {"tau_s": 240.0},
@@ -31,27 +30,11 @@ EFFECTS = {"thermal_lag": {"tau_s": 240.0},
 OUT = ["ax_g", "ay_g", "az_g", "gx_dps", "gy_dps", "gz_dps"]
 
 
-def _concat(parts: list[ImuInputs]) -> ImuInputs:
-    return ImuInputs(**{f: np.concatenate([np.asarray(getattr(p, f)) for p in parts])
-                        for f in ("t_s", "run", "t_on_s", "temp_c", "force_g", "rate_dps")})
-
-
 def test_the_stored_ramp_is_the_model_run_once_over_the_true_inputs(tmp_path, monkeypatch):
     proc, sim, db = tmp_path / "ramp.yaml", tmp_path / "sim.json", tmp_path / "r.db"
     proc.write_text(RAMP.replace("stop_c: 25", "stop_c: 35"))  # 40 min per orientation: 10 tau
     sim.write_text(json.dumps({"seed": 5, "imu_model": {"effects": EFFECTS}}))
-    fed: list[ImuInputs] = []
-    real = SimWorld.imu_inputs
-
-    def recording(self: SimWorld, times: np.ndarray) -> ImuInputs:
-        out = real(self, times)
-        fed.append(out)
-        return out
-
-    monkeypatch.setattr(SimWorld, "imu_inputs", recording)
-    assert main(["run", str(proc), "--sim", "--sim-config", str(sim), "--seed", "5", "--db", str(db),
-                 "--quiet"]) == 0
-    truth = _concat(fed)
+    truth = dry_run_with_truth(monkeypatch, proc, sim, db, 5)
     assert np.all(np.diff(truth.t_s) > 0)  # each sample generated once, in time order
     model = SimLabConfig.from_dict(json.loads(sim.read_text())).imu_model
     direct = np.concatenate([truth.force_g, truth.rate_dps], axis=1) + model.deterministic_error(truth)[0]
