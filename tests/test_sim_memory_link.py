@@ -8,16 +8,16 @@ not at what the drivers made of them only.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
 
 import pytest
 import serial
 
 from labrunner.clock import VirtualClock
 from labrunner.fault_kinds import FaultKind
-from labrunner.lab import Lab, simulated_lab
+from labrunner.lab import Lab
 from labrunner.sims.links import MemoryPort
 from tests.drivers.expected_bytes import rtu
+from tests.sim_lab import connected_lab  # noqa: F401 - the `lab` fixture
 
 
 class Tap:
@@ -42,15 +42,6 @@ class Tap:
         port.write = on_reply  # type: ignore[method-assign]
 
 
-@pytest.fixture
-def lab() -> Iterator[Lab]:
-    lab = simulated_lab(max_rate_dps=150.0)
-    lab.chamber.connect()
-    lab.table.connect()
-    lab.imu.connect()
-    lab.clock.sleep(1.0)
-    yield lab
-    lab.close()
 
 
 def test_a_memory_line_passes_every_byte_both_ways() -> None:

@@ -4,7 +4,7 @@ symptom a driver would meet on a real lab, and `clear_fault` takes it away again
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import pytest
 
@@ -12,20 +12,12 @@ from labrunner.drivers.errors import InstrumentError, InstrumentProtocolError, I
 from labrunner.drivers.protocols import ImuRecord
 from labrunner.fault_kinds import INTERLOCK_KINDS, FaultKind, FaultTarget
 from labrunner.fault_plan import KINDS, RANDOM_KINDS
-from labrunner.lab import Lab, simulated_lab
+from labrunner.lab import Lab
+from tests.sim_lab import connected_lab  # noqa: F401 - the `lab` fixture
 
 K = FaultKind
 
 
-@pytest.fixture
-def lab() -> Iterator[Lab]:
-    lab = simulated_lab(max_rate_dps=150.0)
-    lab.chamber.connect()
-    lab.table.connect()
-    lab.imu.connect()
-    lab.clock.sleep(1.0)  # the stream is running: records count their frames from a known counter
-    yield lab
-    lab.close()
 
 
 def _wait_for(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
