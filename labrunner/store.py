@@ -1202,26 +1202,17 @@ class Store:
 
     def campaign_data(self, campaign_id: int | None = None, include_monitor: bool = False) -> Any:
         """Samples as validated campaign data with provenance (what `labrunner fit`/`diagnose` read)."""
-        import pandas as pd
 
         from labrunner.campaign_csv import read_campaign
-        from labrunner.data_source import CampaignData, ScaledFloatArray
+        from labrunner.data_source import CampaignData
 
         cid = self.resolve(campaign_id)
         info = self.campaign(cid)
         frame = self.samples_frame(cid, include_monitor=include_monitor, categorical=True, counts=True)
         if frame.empty:
             raise UserError(f"{self.path}: campaign {cid} has no recorded samples yet")
-        # Columns of int16 counts are finite by construction; the validation sees a zero-stride stand-in
-        # for them (the value check has nothing to find, and converting them would cost their float64
-        # copies) and every other column and check as a CSV's.
-        # (DataFrame(copy=False) of the columns: `assign` would copy every column it is given.)
-        counted = {c: frame[c].array for c in frame.columns if isinstance(frame[c].array, ScaledFloatArray)
-                   and frame[c].array.counts.dtype.kind in "iu"}
-        stand_in = np.broadcast_to(np.float64(0.0), len(frame))
-        checked = read_campaign(pd.DataFrame({c: stand_in if c in counted else frame[c].array for c in frame.columns},
-                                             copy=False), name=f"{self.path} campaign {cid}")
-        frame = pd.DataFrame({c: counted.get(c, checked[c].array) for c in checked.columns}, copy=False)
+        # (read_campaign keeps the int16-count columns as they are: finite by construction.)
+        frame = read_campaign(frame, name=f"{self.path} campaign {cid}")
         return CampaignData(frame=frame, store=self.path, provenance={
             "source": str(self.path.resolve()), "kind": "store", "campaign_id": cid, "campaign": info.name,
             "procedure_sha256": info.procedure_sha256, "status": info.status, "rows": len(frame),
