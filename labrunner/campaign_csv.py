@@ -504,12 +504,12 @@ def _chunks(b: SampleBlock, fmt: RowFormatter) -> Iterator[tuple[np.ndarray, np.
     """A block's times and formatted rows `CHUNK_ROWS` at a time, with the time its next chunk starts at
     (inf for the last); chamber and table readings interpolated to the sample times as
     `Store.samples_frame` does."""
-    from labrunner.store import _interp_readings
+    from labrunner.store import interp_readings
 
     t_all = b.times()
     run, orientation = str(b.run), quote_cell(b.orientation)
-    chamber = _interp_readings(t_all, b.chamber)
-    table = _interp_readings(t_all, b.table, default=0.0)
+    chamber = interp_readings(t_all, b.chamber)
+    table = interp_readings(t_all, b.table, default=0.0)
     lsb = b.lsb or (None, None, None)
     for lo in range(0, len(b), CHUNK_ROWS):
         hi = min(lo + CHUNK_ROWS, len(b))

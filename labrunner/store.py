@@ -1121,8 +1121,8 @@ class Store:
                 labels.append(orientation)
             codes[sl] = labels.index(orientation)
             run[sl] = row["run"]
-            cols["chamber_c"][sl] = _interp_readings(t, np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2))
-            cols["table_rate_dps"][sl] = _interp_readings(t, np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2),
+            cols["chamber_c"][sl] = interp_readings(t, np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2))
+            cols["table_rate_dps"][sl] = interp_readings(t, np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2),
                                                           default=0.0)
             enc, la, lg, lt = row["encoding"], row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]
             if lsb is not None:  # the stored counts as they are: _one_lsb saw one encoding and LSB
@@ -1221,7 +1221,7 @@ class Store:
         })
 
 
-def _interp_readings(t: np.ndarray, readings: np.ndarray, default: float = float("nan")) -> np.ndarray:
+def interp_readings(t: np.ndarray, readings: np.ndarray, default: float = float("nan")) -> np.ndarray:
     """Instrument readings taken during a block, interpolated to the sample times."""
     if readings.size == 0:
         return np.full(t.size, default)
