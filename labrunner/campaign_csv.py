@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 __all__ = ["COLUMNS", "ACCEL_COLUMNS", "GYRO_COLUMNS", "OUTPUT_COLUMNS", "export_campaign", "read_campaign",
-           "write_campaign"]
+           "read_campaign_chunk", "write_campaign"]
 # Columns that must hold a number on every row; chamber_c may be empty (no chamber).
 REQUIRED_NUMERIC = ("t_s", "imu_temp_c", "table_rate_dps") + OUTPUT_COLUMNS
 POWER_ON = "power_on"  # optional column: 1 on the first row after a real power-on, else 0
@@ -83,8 +83,22 @@ def read_campaign(source: str | Path | pd.DataFrame, name: str | None = None) ->
     return _validate(source.reset_index(drop=True), label, False)
 
 
-def _validate(raw: pd.DataFrame, label: str, from_csv: bool) -> pd.DataFrame:
-    """The campaign columns of `raw`, checked and typed; `CampaignDataError` names the first bad cell."""
+def read_campaign_chunk(frame: pd.DataFrame, name: str, *, first_row: int,
+                        previous: tuple[int, float] | None) -> pd.DataFrame:
+    """A chunk of a campaign frame (rows `first_row`... of the whole) validated as `read_campaign` validates
+    the whole: the same checks and messages, rows named by their place in the whole, and time order
+    checked across the boundary (`previous`: the run and time of the row before the chunk, None for
+    the first). The result's RangeIndex starts at `first_row`."""
+    out = _validate(frame.reset_index(drop=True), name, False, first_row=first_row, previous=previous)
+    if first_row:
+        out.index = pd.RangeIndex(first_row, first_row + len(out))
+    return out
+
+
+def _validate(raw: pd.DataFrame, label: str, from_csv: bool, *, first_row: int = 0,
+              previous: tuple[int, float] | None = None) -> pd.DataFrame:
+    """The campaign columns of `raw`, checked and typed; `CampaignDataError` names the first bad cell
+    (rows numbered from `first_row`; `previous`: the run and time of the row before, for the time order)."""
     missing = [c for c in COLUMNS if c not in raw.columns]
     if missing:
         raise CampaignDataError(label, "missing column(s) " + ", ".join(missing) + "; the header must name "
@@ -107,7 +121,8 @@ def _validate(raw: pd.DataFrame, label: str, from_csv: bool) -> pd.DataFrame:
             bad = values.isna() & ~empty
             if bad.any():
                 i = int(np.flatnonzero(bad.to_numpy())[0])
-                raise CampaignDataError(label, f"{text.iloc[i]!r} is not a number", _line(i, from_csv), col)
+                raise CampaignDataError(label, f"{text.iloc[i]!r} is not a number", _line(first_row + i, from_csv),
+                                        col)
             arr = values.to_numpy(dtype=float)
         elif series.dtype == np.float64:
             arr = series.to_numpy()  # a view: the typed CSV reader's and a store's columns
@@ -117,10 +132,11 @@ def _validate(raw: pd.DataFrame, label: str, from_csv: bool) -> pd.DataFrame:
             nan = ~np.isfinite(arr)
             if nan.any():
                 i = int(np.flatnonzero(nan)[0])
-                raise CampaignDataError(label, "value missing or not finite (NaN/inf)", _line(i, from_csv), col)
+                raise CampaignDataError(label, "value missing or not finite (NaN/inf)",
+                                        _line(first_row + i, from_csv), col)
         elif np.isinf(arr).any():
             i = int(np.flatnonzero(np.isinf(arr))[0])
-            raise CampaignDataError(label, "value is infinite", _line(i, from_csv), col)
+            raise CampaignDataError(label, "value is infinite", _line(first_row + i, from_csv), col)
         out[col] = arr
 
     series = raw["run"]
@@ -137,22 +153,25 @@ def _validate(raw: pd.DataFrame, label: str, from_csv: bool) -> pd.DataFrame:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise CampaignDataError(label, f"{raw['run'].iloc[i]!r} is not an integer run number",
-                                    _line(i, from_csv), "run")
+                                    _line(first_row + i, from_csv), "run")
         out["run"] = r.astype(np.int64)
 
-    out["orientation"] = _orientations(raw["orientation"], label, from_csv)
+    out["orientation"] = _orientations(raw["orientation"], label, from_csv, first_row)
 
     t = out["t_s"]
     run = out["run"]
     assert isinstance(t, np.ndarray) and isinstance(run, np.ndarray)
+    if previous is not None and run[0] == previous[0] and t[0] < previous[1]:
+        raise CampaignDataError(label, f"time goes backwards within run {run[0]} ({previous[1]} then {t[0]})",
+                                _line(first_row, from_csv), "t_s")
     back = _backwards(t, run)
     if back is not None:
         i = back
         raise CampaignDataError(label, f"time goes backwards within run {run[i]} ({t[i - 1]} then {t[i]})",
-                                _line(i, from_csv), "t_s")
+                                _line(first_row + i, from_csv), "t_s")
     columns = list(COLUMNS)
     if POWER_ON in raw.columns:  # optional (docs/design.md, "The campaign CSV"): 1 on a real power-on's first row
-        out[POWER_ON] = _power_on(raw[POWER_ON], label, from_csv)
+        out[POWER_ON] = _power_on(raw[POWER_ON], label, from_csv, first_row)
         columns.append(POWER_ON)
     return pd.DataFrame({c: out[c] for c in columns}, copy=False)
 
@@ -179,7 +198,7 @@ def _categories(series: pd.Series) -> tuple[np.ndarray, list[str]]:
     return codes, labels
 
 
-def _orientations(series: pd.Series, label: str, from_csv: bool) -> pd.Categorical:
+def _orientations(series: pd.Series, label: str, from_csv: bool, first_row: int = 0) -> pd.Categorical:
     codes, labels = _categories(series)
     known = np.array([lab in ORIENTATIONS for lab in labels])
     target = np.array([ORIENTATIONS.index(lab) if ok else -1 for lab, ok in zip(labels, known)], dtype=np.int8)
@@ -187,16 +206,17 @@ def _orientations(series: pd.Series, label: str, from_csv: bool) -> pd.Categoric
     if unknown.any():
         i = int(np.flatnonzero(unknown)[0])
         raise CampaignDataError(label, f"unknown orientation {labels[codes[i]]!r}; expected one of "
-                                + " ".join(ORIENTATIONS), _line(i, from_csv), "orientation")
+                                + " ".join(ORIENTATIONS), _line(first_row + i, from_csv), "orientation")
     return pd.Categorical.from_codes(target[codes], categories=list(ORIENTATIONS))
 
 
-def _power_on(series: pd.Series, label: str, from_csv: bool) -> np.ndarray:
+def _power_on(series: pd.Series, label: str, from_csv: bool, first_row: int = 0) -> np.ndarray:
     codes, labels = _categories(series)
     ok = np.array([lab in _POWER_ON_TEXT for lab in labels])
     if not ok[codes].all():
         i = int(np.flatnonzero(~ok[codes])[0])
-        raise CampaignDataError(label, f"{labels[codes[i]]!r} is not 0 or 1", _line(i, from_csv), POWER_ON)
+        raise CampaignDataError(label, f"{labels[codes[i]]!r} is not 0 or 1", _line(first_row + i, from_csv),
+                                POWER_ON)
     return np.array([lab in _TRUE for lab in labels], dtype=np.int8)[codes]  # 0/1: one byte a row
 
 

@@ -18,6 +18,7 @@ from pandas.api.types import is_integer, is_scalar, pandas_dtype
 from pandas.arrays import NumpyExtensionArray
 
 from labrunner.campaign_csv import CampaignDataError, read_campaign
+from labrunner.errors import UserError
 from labrunner.store_address import StoreAddress, is_store, is_url, store_address
 
 
@@ -67,26 +68,102 @@ def _from_store(address: StoreAddress, campaign: int | None, include_monitor: bo
         return data
 
 
+def power_on_runs(events: pd.DataFrame) -> set[int]:
+    """The runs the sequencer powered the IMU on for: its "powered on (run N)" events."""
+    import re
+
+    return {int(m.group(1)) for text in events.get("message", pd.Series(dtype=str)).astype(str)
+            if (m := re.search(r"powered on \(run (\d+)\)", text))}
+
+
+class PowerOnMarks:
+    """The store's power-on events as the campaign CSV's optional `power_on` column, chunk by chunk: 1 on
+    the first row of each run the sequencer powered the IMU on for. The runs seen in earlier chunks are
+    remembered, so marking a campaign's time-ordered chunks in order marks what marking the whole does."""
+
+    def __init__(self, events: pd.DataFrame) -> None:
+        self.powered = np.fromiter(power_on_runs(events), dtype=np.int64)
+        self.seen: set[int] = set()
+
+    def mark(self, frame: pd.DataFrame) -> pd.DataFrame:
+        run = frame["run"].to_numpy()
+        # The first row of each run: where the run changes, when no run comes back later (a store's rows
+        # are in time order); else by hashing every row's run.
+        change = np.flatnonzero(np.concatenate(([True], run[1:] != run[:-1]))) if run.size else np.zeros(0, int)
+        if np.unique(run[change]).size == change.size:
+            at = change
+        else:
+            at = np.flatnonzero(~frame["run"].duplicated().to_numpy())
+        if self.seen:  # a run that began in an earlier chunk has its first row there
+            at = at[~np.isin(run[at], np.fromiter(self.seen, dtype=np.int64, count=len(self.seen)))]
+        self.seen.update(run[at].tolist())
+        mark = np.zeros(run.size, dtype=np.int8)
+        mark[at[np.isin(run[at], self.powered)]] = 1
+        return frame.assign(power_on=mark)
+
+
+def campaign_chunks(path: str | Path | StoreAddress, campaign: int | None = None, *, max_rows: int = 1 << 20,
+                    include_monitor: bool = False, min_gap_s: float | None = None
+                    ) -> tuple[dict[str, Any], Iterator[pd.DataFrame]]:
+    """`load_campaign_data(path, campaign, include_monitor=...)` a bounded number of rows at a time: its
+    provenance (the same dict, known before any sample is read: rows and time range from the block
+    rows) and an iterator of validated, power-on-marked chunks whose concatenation is its frame
+    (index included: a chunk's RangeIndex continues the previous one's).
+
+    From a store, chunks are `Store.frames` chunks (whole blocks, `max_rows` and `min_gap_s` as
+    there), each validated by `read_campaign_chunk` (the whole read's checks and messages, rows named
+    by their place in the campaign); the store stays open until the iterator is exhausted or closed.
+    A campaign CSV is read whole and comes as one chunk."""
+    if not (isinstance(path, StoreAddress) or is_url(path)):
+        p = Path(path)
+        if not (p.exists() and not p.is_dir() and is_store(p)):
+            data = load_campaign_data(p, campaign, include_monitor=include_monitor)
+            return data.provenance, iter([data.frame])
+    from labrunner.store import Store
+
+    address = store_address(path)
+    store = Store.open_existing(address)
+    try:
+        cid = store.resolve(campaign)
+        info = store.campaign(cid)
+        kinds = ("record", "monitor") if include_monitor else ("record",)
+        rows = store.sample_count(cid, kinds)
+        if rows == 0:
+            raise UserError(f"{store.path}: campaign {cid} has no recorded samples yet")
+        provenance: dict[str, Any] = {
+            "source": str(store.path.resolve()), "kind": "store", "campaign_id": cid, "campaign": info.name,
+            "procedure_sha256": info.procedure_sha256, "status": info.status, "rows": rows,
+            "t_range_s": list(store.time_range(cid, kinds)), "recorded_with": info.software_version,
+        }
+        provenance.update(step_progress(store, cid))
+        marks = PowerOnMarks(store.events_frame(cid))
+    except BaseException:
+        store.close()
+        raise
+    return provenance, _store_chunks(store, cid, marks, max_rows=max_rows, include_monitor=include_monitor,
+                                     min_gap_s=min_gap_s)
+
+
+def _store_chunks(store: Any, cid: int, marks: PowerOnMarks, *, max_rows: int, include_monitor: bool,
+                  min_gap_s: float | None) -> Iterator[pd.DataFrame]:
+    from labrunner.campaign_csv import read_campaign_chunk
+
+    name = f"{store.path} campaign {cid}"
+    previous: tuple[int, float] | None = None
+    try:
+        for chunk in store.frames(cid, max_rows=max_rows, include_monitor=include_monitor, min_gap_s=min_gap_s):
+            first = int(chunk.index[0])
+            chunk = marks.mark(read_campaign_chunk(chunk, name, first_row=first, previous=previous))
+            previous = (int(chunk["run"].iat[-1]), float(chunk["t_s"].iat[-1]))
+            yield chunk
+    finally:
+        store.close()
+
+
 def mark_power_ons(frame: pd.DataFrame, events: pd.DataFrame) -> pd.DataFrame:
     """The store's power-on events as the campaign CSV's optional `power_on` column: 1 on the first
     row of each run the sequencer powered the IMU on for (its "powered on (run N)" event)."""
-    import re
-
-    runs = {int(m.group(1)) for text in events.get("message", pd.Series(dtype=str)).astype(str)
-            if (m := re.search(r"powered on \(run (\d+)\)", text))}
-    run = frame["run"].to_numpy()
-    # The first row of each run: where the run changes, when no run comes back later (a store's rows
-    # are in time order); else by hashing every row's run.
-    change = np.flatnonzero(np.concatenate(([True], run[1:] != run[:-1])))
-    if np.unique(run[change]).size == change.size:
-        first = np.zeros(run.size, dtype=bool)
-        first[change] = True
-    else:
-        first = ~frame["run"].duplicated().to_numpy()
-    at = np.flatnonzero(first)
-    mark = np.zeros(run.size, dtype=np.int8)
-    mark[at[np.isin(run[at], np.fromiter(runs, dtype=np.int64, count=len(runs)))]] = 1
-    return frame.assign(power_on=mark)
+    return PowerOnMarks(events).mark(frame)
 
 
 # --- float64 columns kept as the store's int16 counts ---------------------------------------------------

@@ -314,6 +314,112 @@ def _block_from_row(row: Any, path: StoreAddress) -> SampleBlock:
     )
 
 
+def _end_time(row: Any) -> float:
+    """Campaign time of a checked block row's last sample, as the frame's time column computes it."""
+    counter = np.frombuffer(row["counter"], dtype="<i4")
+    return float(np.add(np.divide(np.subtract(counter[-1:], counter[0], dtype=np.float64), row["rate_hz"]),
+                        row["t0_s"])[0])
+
+
+class _BlockColumns:
+    """Stored blocks' samples in the campaign CSV columns, filled block by block into columns
+    preallocated to `total` rows: the one block -> columns conversion (`Store.samples_frame` and
+    `Store.frames`). No per-row Python objects (orientation is one code per block), no concatenation.
+
+    `lsb`: the campaign's one set of LSB sizes (the IMU channels kept as int16 counts) or None
+    (float64). `labels` are the orientation categories, the six first; a new label is appended to
+    the list given (`Store.frames` shares it between chunks)."""
+
+    def __init__(self, total: int, lsb: tuple[float, float, float] | None, labels: list[str], path: StoreAddress,
+                 *, with_steps: bool = False) -> None:
+        self.total, self.lsb, self.labels, self.path, self.with_steps = total, lsb, labels, path, with_steps
+        self.cols: dict[str, np.ndarray] = {c: np.empty(total) for c in COLUMNS if c not in ("run", "orientation")}
+        if lsb is not None:  # the blobs' layout: a block's (n, 3) counts are one copy, the columns views
+            self.accel_counts = np.empty((total, 3), dtype=np.int16)
+            self.gyro_counts = np.empty((total, 3), dtype=np.int16)
+            self.cols.update({c: self.accel_counts[:, j] for j, c in enumerate(ACCEL_COLUMNS)}
+                             | {c: self.gyro_counts[:, j] for j, c in enumerate(GYRO_COLUMNS)}
+                             | {"imu_temp_c": np.empty(total, dtype=np.int16)})
+        self.run = np.empty(total, dtype=np.int64)
+        self.codes = np.empty(total, dtype=np.int8)
+        self.step_idx = np.empty(total if with_steps else 0)
+        self.kind = np.empty(total if with_steps else 0, dtype=object)
+        self.at = 0
+
+    def add(self, row: Any) -> bool:
+        """Fill the next rows from a stored block row (`StoreDamage` if its blobs do not hold what it
+        says); False when it does not fit what was counted (a block written since: not read)."""
+        block_lsb = _checked_row(row, self.path)
+        n = int(row["n"])
+        if n == 0:
+            return True
+        at, cols = self.at, self.cols
+        if at + n > self.total:  # rows written since the count: read what was counted
+            return False
+        if self.lsb is not None and block_lsb != self.lsb:  # only a block written since the count can differ
+            return False
+        sl = slice(at, at + n)
+        # SampleBlock.times() computed in place: t0 + (counter - counter[0]) / rate (whole numbers below
+        # 2**31 subtract exactly in float64)
+        counter = np.frombuffer(row["counter"], dtype="<i4")
+        t = cols["t_s"][sl]
+        np.subtract(counter, counter[0], out=t, dtype=np.float64)
+        np.divide(t, row["rate_hz"], out=t)
+        np.add(t, row["t0_s"], out=t)
+        orientation = row["orientation"]
+        if orientation not in self.labels:
+            self.labels.append(orientation)
+        self.codes[sl] = self.labels.index(orientation)
+        self.run[sl] = row["run"]
+        cols["chamber_c"][sl] = interp_readings(t, np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2))
+        cols["table_rate_dps"][sl] = interp_readings(t, np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2),
+                                                      default=0.0)
+        enc, la, lg, lt = row["encoding"], row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]
+        if self.lsb is not None:  # the stored counts as they are: one encoding and LSB
+            self.accel_counts[sl] = np.frombuffer(row["accel_g"], dtype="<i2").reshape(n, 3)
+            self.gyro_counts[sl] = np.frombuffer(row["gyro_dps"], dtype="<i2").reshape(n, 3)
+            cols["imu_temp_c"][sl] = np.frombuffer(row["temp_c"], dtype="<i2")
+        else:
+            accel = _decode(row["accel_g"], enc, la, (n, 3))
+            gyro = _decode(row["gyro_dps"], enc, lg, (n, 3))
+            cols["imu_temp_c"][sl] = _decode(row["temp_c"], enc, lt, (n,))
+            for j, c in enumerate(ACCEL_COLUMNS):
+                cols[c][sl] = accel[:, j]
+            for j, c in enumerate(GYRO_COLUMNS):
+                cols[c][sl] = gyro[:, j]
+        if self.with_steps:
+            self.step_idx[sl] = np.nan if row["step_idx"] is None else row["step_idx"]
+            self.kind[sl] = row["kind"]
+        self.at = at + n
+        return True
+
+    def frame(self, categorical: bool, *, sort: bool, start: int = 0) -> pd.DataFrame:
+        """The rows filled, as a frame (see `Store.samples_frame`); `sort`: stably by time (monitor
+        rows among the records). Its RangeIndex starts at `start`."""
+        import pandas as pd
+
+        at, cols = self.at, self.cols
+        orientation_col: Any = pd.Categorical.from_codes(self.codes[:at], categories=list(self.labels))
+        if not categorical:
+            orientation_col = np.asarray(self.labels, dtype=object)[self.codes[:at]]
+        data: dict[str, Any] = {c: (self.run[:at] if c == "run" else orientation_col if c == "orientation"
+                                    else cols[c][:at]) for c in COLUMNS}
+        if self.lsb is not None:
+            from labrunner.data_source import ScaledFloatArray
+
+            la, lg, lt = self.lsb
+            scale = dict.fromkeys(ACCEL_COLUMNS, la) | dict.fromkeys(GYRO_COLUMNS, lg) | {"imu_temp_c": lt}
+            data.update({c: ScaledFloatArray(cols[c][:at], s) for c, s in scale.items()})
+        if self.with_steps:
+            data.update(kind=self.kind[:at], state=np.full(at, None, dtype=object), step_idx=self.step_idx[:at])
+        frame = pd.DataFrame(data, copy=False)
+        if sort:
+            frame = frame.sort_values("t_s", kind="stable").reset_index(drop=True)
+        if start:
+            frame.index = pd.RangeIndex(start, start + len(frame))
+        return frame
+
+
 def _json(value: str | None, path: StoreAddress, campaign_id: int, table: str, column: str) -> Any:
     """A stored JSON column decoded, or `StoreDamage` naming the campaign, table and column."""
     if value is None:
@@ -1067,6 +1173,24 @@ class Store:
         with self.reading() as conn:
             return int(conn.execute(q).scalar_one())
 
+    def time_range(self, campaign_id: int, kinds: Sequence[str] = ("record",)) -> tuple[float, float]:
+        """The first and last sample times of a campaign's blocks of these kinds, as the frame's `t_s`
+        has them, from the block rows and each counter blob's first and last offsets (no sample blob is
+        read); (nan, nan) when there are no samples. A block's counters ascend (its first sample is
+        its earliest, its last its latest)."""
+        c = sample_blocks.c
+        ends = (func.substr(c.counter, 1, 4), func.substr(c.counter, func.length(c.counter) - 3, 4))
+        q = (select(c.t0_s, c.rate_hz, *ends).where(c.campaign_id == campaign_id, c.kind.in_(list(kinds)), c.n > 0))
+        lo, hi = np.inf, -np.inf
+        with self.reading() as conn:
+            for t0, rate_hz, first, last in conn.execute(q):
+                if not isinstance(first, bytes) or len(first) != 4 or not isinstance(last, bytes) or len(last) != 4:
+                    continue  # a damaged counter blob: the read of the samples names it
+                offsets = np.frombuffer(first + last, dtype="<i4")
+                end = np.add(np.divide(np.subtract(offsets[1:], offsets[0], dtype=np.float64), rate_hz), t0)
+                lo, hi = min(lo, float(t0)), max(hi, float(end[0]))
+        return (lo, hi) if lo <= hi else (float("nan"), float("nan"))
+
     def samples_frame(self, campaign_id: int, include_monitor: bool = False, with_steps: bool = False,
                       remount_c: float | None = None, categorical: bool = False, counts: bool = False) -> pd.DataFrame:
         """All samples in the campaign CSV columns (records; with monitor rows if asked), time-ordered.
@@ -1082,83 +1206,73 @@ class Store:
         `with_steps` adds, per row, `kind` (record or monitor), the sequencer's `state`, the
         `step_idx` of its step, the chamber `setpoint_c` and the commanded table rate `rate_cmd_dps`
         (see `_with_steps`; `remount_c` is the procedure's remount temperature)."""
-        import pandas as pd
-
         kinds = ("record", "monitor") if include_monitor else ("record",)
         # Columns preallocated to the stored sample count and filled block by block: no per-row
         # Python objects (orientation is one code per block) and no concatenation copy.
         total = self.sample_count(campaign_id, kinds)
         lsb = self._one_lsb(campaign_id, kinds) if counts else None  # after the count: later blocks are not read
-        cols: dict[str, np.ndarray] = {c: np.empty(total) for c in COLUMNS if c not in ("run", "orientation")}
-        if lsb is not None:  # the blobs' layout: a block's (n, 3) counts are one copy, the columns views
-            accel_counts, gyro_counts = np.empty((total, 3), dtype=np.int16), np.empty((total, 3), dtype=np.int16)
-            cols.update({c: accel_counts[:, j] for j, c in enumerate(ACCEL_COLUMNS)}
-                        | {c: gyro_counts[:, j] for j, c in enumerate(GYRO_COLUMNS)}
-                        | {"imu_temp_c": np.empty(total, dtype=np.int16)})
-        run = np.empty(total, dtype=np.int64)
-        codes = np.empty(total, dtype=np.int8)
-        labels: list[str] = list(ORIENTATIONS)
-        step_idx = np.empty(total if with_steps else 0)
-        kind = np.empty(total if with_steps else 0, dtype=object)
-        at = 0
+        cols = _BlockColumns(total, lsb, list(ORIENTATIONS), self.path, with_steps=with_steps)
         for row in self._block_rows(campaign_id, kinds):
-            block_lsb = _checked_row(row, self.path)
+            if not cols.add(row):
+                break
+        frame = cols.frame(categorical, sort=include_monitor)
+        return self._with_steps(campaign_id, frame, remount_c) if with_steps else frame
+
+    def frames(self, campaign_id: int, *, max_rows: int = 1 << 20, include_monitor: bool = False,
+               categorical: bool = True, counts: bool = True, min_gap_s: float | None = None
+               ) -> Iterator[pd.DataFrame]:
+        """`samples_frame(campaign_id, include_monitor=..., categorical=..., counts=...)` a bounded number of
+        rows at a time: `pd.concat(frames(...))` equals it (index included: each chunk's RangeIndex
+        continues the previous one's, so a chunk's first index is its first row's position in the campaign).
+
+        Chunks hold whole blocks and start at a block boundary. A chunk closes at the first boundary
+        after it holds `max_rows` rows where the next block starts more than `min_gap_s` seconds after
+        the chunk's last sample (None: at any boundary; then a chunk exceeds `max_rows` by at most its
+        last block). With monitor rows (time-ordered like `samples_frame`: each chunk sorted), a chunk
+        also closes only where no sample of it is later than the next block's start, so the chunks'
+        rows are in the order of the whole sort. The IMU channels are counts when the whole campaign's
+        blocks share one LSB (as `samples_frame` decides), so every chunk has the same dtypes; a label
+        outside the six orientations adds a category from the chunk that first holds it on."""
+        if max_rows < 1:
+            raise ValueError(f"max_rows must be at least 1, not {max_rows}")
+        kinds = ("record", "monitor") if include_monitor else ("record",)
+        total = self.sample_count(campaign_id, kinds)
+        lsb = self._one_lsb(campaign_id, kinds) if counts else None
+        labels = list(ORIENTATIONS)  # shared by the chunks: a category once added stays
+        pending: list[Any] = []
+        held = 0  # rows in pending
+        last = -np.inf  # the latest sample time in pending
+        read = 0  # rows taken (what was counted is read, as samples_frame does)
+        start = 0  # index of the chunk's first row
+
+        def flush() -> pd.DataFrame:
+            nonlocal pending, held, last, start
+            cols = _BlockColumns(held, lsb, labels, self.path)
+            for r in pending:
+                if not cols.add(r):
+                    break
+            frame = cols.frame(categorical, sort=include_monitor, start=start)
+            start += len(frame)
+            pending, held, last = [], 0, -np.inf
+            return frame
+
+        for row in self._block_rows(campaign_id, kinds):
+            lsb_row = _checked_row(row, self.path)  # the blobs hold what the row says (the end time reads one)
             n = int(row["n"])
             if n == 0:
                 continue
-            if at + n > total:  # rows written since the count: read what was counted
-                break
-            sl = slice(at, at + n)
-            # SampleBlock.times() computed in place: t0 + (counter - counter[0]) / rate (whole numbers below
-            # 2**31 subtract exactly in float64)
-            counter = np.frombuffer(row["counter"], dtype="<i4")
-            t = cols["t_s"][sl]
-            np.subtract(counter, counter[0], out=t, dtype=np.float64)
-            np.divide(t, row["rate_hz"], out=t)
-            np.add(t, row["t0_s"], out=t)
-            orientation = row["orientation"]
-            if orientation not in labels:
-                labels.append(orientation)
-            codes[sl] = labels.index(orientation)
-            run[sl] = row["run"]
-            cols["chamber_c"][sl] = interp_readings(t, np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2))
-            cols["table_rate_dps"][sl] = interp_readings(t, np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2),
-                                                          default=0.0)
-            enc, la, lg, lt = row["encoding"], row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]
-            if lsb is not None:  # the stored counts as they are: _one_lsb saw one encoding and LSB
-                if block_lsb != lsb:  # only a block written since the count can differ: not read
-                    break
-                accel_counts[sl] = np.frombuffer(row["accel_g"], dtype="<i2").reshape(n, 3)
-                gyro_counts[sl] = np.frombuffer(row["gyro_dps"], dtype="<i2").reshape(n, 3)
-                cols["imu_temp_c"][sl] = np.frombuffer(row["temp_c"], dtype="<i2")
-            else:
-                accel = _decode(row["accel_g"], enc, la, (n, 3))
-                gyro = _decode(row["gyro_dps"], enc, lg, (n, 3))
-                cols["imu_temp_c"][sl] = _decode(row["temp_c"], enc, lt, (n,))
-                for j, c in enumerate(ACCEL_COLUMNS):
-                    cols[c][sl] = accel[:, j]
-                for j, c in enumerate(GYRO_COLUMNS):
-                    cols[c][sl] = gyro[:, j]
-            if with_steps:
-                step_idx[sl] = np.nan if row["step_idx"] is None else row["step_idx"]
-                kind[sl] = row["kind"]
-            at += n
-        orientation_col: Any = pd.Categorical.from_codes(codes[:at], categories=labels)
-        if not categorical:
-            orientation_col = np.asarray(labels, dtype=object)[codes[:at]]
-        data: dict[str, Any] = {c: (run[:at] if c == "run" else orientation_col if c == "orientation"
-                                    else cols[c][:at]) for c in COLUMNS}
-        if lsb is not None:
-            from labrunner.data_source import ScaledFloatArray
-
-            scale = dict.fromkeys(ACCEL_COLUMNS, lsb[0]) | dict.fromkeys(GYRO_COLUMNS, lsb[1]) | {"imu_temp_c": lsb[2]}
-            data.update({c: ScaledFloatArray(cols[c][:at], s) for c, s in scale.items()})
-        if with_steps:
-            data.update(kind=kind[:at], state=np.full(at, None, dtype=object), step_idx=step_idx[:at])
-        frame = pd.DataFrame(data, copy=False)
-        if include_monitor:
-            frame = frame.sort_values("t_s", kind="stable").reset_index(drop=True)
-        return self._with_steps(campaign_id, frame, remount_c) if with_steps else frame
+            if read + n > total or (lsb is not None and lsb_row != lsb):
+                break  # a block written since the count: not read (as samples_frame)
+            t0 = row["t0_s"]
+            if held >= max_rows and (min_gap_s is None or t0 - last > min_gap_s) and (
+                    not include_monitor or last <= t0):
+                yield flush()
+            pending.append(row)
+            held += n
+            read += n
+            last = max(last, _end_time(row))
+        if pending:
+            yield flush()
 
     def _with_steps(self, campaign_id: int, frame: pd.DataFrame, remount_c: float | None) -> pd.DataFrame:
         """Fill `state`, `step_idx`, `setpoint_c` and `rate_cmd_dps` of time-ordered rows.
