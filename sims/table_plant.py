@@ -8,6 +8,7 @@ rate profile is piecewise linear, so it is evaluated vectorised at any sample ti
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,16 +60,40 @@ class TablePlant:
     def rate_at(self, times: np.ndarray, ripple: bool = True) -> np.ndarray:
         """True table rate (deg/s) at times (must not precede the oldest kept segment)."""
         times = np.asarray(times, dtype=float)
-        i = np.clip(np.searchsorted(self._seg_t0, times, side="right") - 1, 0, None)
-        t0, r0, r1, t1 = self._seg_t0[i], self._seg_r0[i], self._seg_r1[i], self._seg_t1[i]
-        span = np.maximum(t1 - t0, 1e-12)
-        frac = np.clip((times - t0) / span, 0.0, 1.0)
-        rate = r0 + (r1 - r0) * frac
-        if ripple:
-            # Once-per-revolution wobble; the angle is only needed modulo a turn.
-            angle = np.deg2rad(rate) * times
-            rate = rate * (1.0 + 0.5 * self.p.rate_accuracy * np.sin(angle))
+        first = float(times.min()) if times.ndim == 1 and times.size else -math.inf
+        if first >= self._seg_t0[-1]:
+            rate = self._rate_in_last_segment(times, first)
+        else:
+            i = np.clip(np.searchsorted(self._seg_t0, times, side="right") - 1, 0, None)
+            t0, r0, r1, t1 = self._seg_t0[i], self._seg_r0[i], self._seg_r1[i], self._seg_t1[i]
+            span = np.maximum(t1 - t0, 1e-12)
+            frac = np.clip((times - t0) / span, 0.0, 1.0)
+            rate = r0 + (r1 - r0) * frac
+        if ripple and (rate.ndim != 1 or rate.size == 0 or rate[0] != 0.0 or rate.any()):
+            # Once-per-revolution wobble; the angle is only needed modulo a turn. (A table at rest has
+            # none: 0 * (1 + k sin 0) is the 0 itself.) In place, in the expression's order.
+            wobble = np.deg2rad(rate)
+            wobble *= times
+            np.sin(wobble, out=wobble)
+            wobble *= 0.5 * self.p.rate_accuracy
+            wobble += 1.0
+            wobble *= rate
+            rate = wobble
         return rate
+
+    def _rate_in_last_segment(self, times: np.ndarray, first: float) -> np.ndarray:
+        """The rate at times that all fall in the newest segment (`first` is the earliest; a stream's
+        chunk, nearly always): the general formula's arithmetic on that one segment's scalars, so the
+        same bits, and a constant once the ramp is over."""
+        t0, r0, r1, t1 = (float(v[-1]) for v in (self._seg_t0, self._seg_r0, self._seg_r1, self._seg_t1))
+        span = max(t1 - t0, 1e-12)
+        if first - t0 >= span:  # (times - t0) / span >= 1 for every time (rounding is monotonic): clipped to 1
+            return np.full(times.size, r0 + (r1 - r0) * 1.0)
+        frac = (times - t0) / span
+        np.clip(frac, 0.0, 1.0, out=frac)
+        frac *= r1 - r0
+        frac += r0
+        return frac
 
     def angle_at(self, t: float) -> float:
         """The table's angle (degrees, 0..360) at t >= the last command: the integral of the rate

@@ -22,7 +22,13 @@ N_COEF = POLY_ORDER + 1
 def thermal_powers(temp_c: np.ndarray) -> np.ndarray:
     """(N, 4) matrix of (T - T_REF_C)**k, k = 0..3."""
     tau = np.asarray(temp_c, dtype=float) - T_REF_C
-    return np.stack([np.ones_like(tau), tau, tau * tau, tau * tau * tau], axis=-1)
+    # Filled in place (the simulator calls this per chunk): the same products as stacking the columns.
+    out = np.empty(tau.shape + (N_COEF,))
+    out[..., 0] = 1.0
+    out[..., 1] = tau
+    sq = np.multiply(tau, tau, out=out[..., 2])
+    np.multiply(sq, tau, out=out[..., 3])
+    return out
 
 
 def baseline_design(temp_c: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -69,9 +75,19 @@ class TriadModel:
 
     def error(self, temp_c: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """(N, 3) baseline error S(T) u + b(T)."""
-        p = thermal_powers(temp_c)
+        return self.error_at_powers(thermal_powers(temp_c), reference)
+
+    def error_at_powers(self, powers: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """`error` from the temperatures' `thermal_powers` (both triads of a model share them)."""
         u = np.asarray(reference, dtype=float)
-        err = p @ self.bias.T
+        err = powers @ self.bias.T
+        term = np.empty_like(err)
         for j in range(3):
-            err += (p @ self.scale[:, j, :].T) * u[:, j: j + 1]
+            # A reference axis that is zero throughout (the force and the table's rate lie along one body
+            # axis) adds S[:, j] * 0 = +-0: nothing to an error that is not itself a signed zero.
+            if not u[:, j].any():
+                continue
+            np.matmul(powers, self.scale[:, j, :].T, out=term)
+            term *= u[:, j: j + 1]
+            err += term
         return err

@@ -109,7 +109,11 @@ class ImuModel:
         n = len(inputs)
         force = np.asarray(inputs.force_g, dtype=float).reshape(n, 3)
         rate = np.asarray(inputs.rate_dps, dtype=float).reshape(n, 3)
-        return np.concatenate([self.accel.error(temp_c, force), self.gyro.error(temp_c, rate)], axis=1)
+        powers = thermal_powers(temp_c)  # the two triads share the temperatures' powers
+        out = np.empty((n, 6))
+        out[:, :3] = self.accel.error_at_powers(powers, force)
+        out[:, 3:] = self.gyro.error_at_powers(powers, rate)
+        return out
 
     def deterministic_error(
         self, inputs: ImuInputs, state: ModelState | None = None, rng: np.random.Generator | None = None
@@ -119,13 +123,14 @@ class ImuModel:
         n = len(inputs)
         temp = np.asarray(inputs.temp_c, dtype=float)
         t = np.asarray(inputs.t_s, dtype=float)
-        new = ModelState() if state is None else copy.deepcopy(state)
+        new = ModelState() if state is None else _copy_state(state)
         if n == 0:
             return np.zeros((0, 6)), new
         st = state or ModelState()
-        element = self.element_temperature(inputs, state)
+        effects = self.active()
+        element = self.element_temperature(inputs, state) if effects else temp
         err = self.baseline_error(temp, inputs)
-        for eff in self.active():
+        for eff in effects:
             stream = Stream(inputs=inputs, element_c=element, baseline_at=lambda tc: self.baseline_error(tc, inputs),
                             seed=int(self.seed), rng=rng, t0=st.t_s, temp0=st.temp_c,
                             carried=st.carried.get(eff.name))
@@ -151,10 +156,15 @@ class ImuModel:
     ) -> tuple[np.ndarray, ModelState]:
         """(N, 6) outputs [accel g, gyro deg/s] with noise (none when rng is None), and the new state."""
         err, new = self.deterministic_error(inputs, state, rng)
-        truth = np.concatenate([np.asarray(inputs.force_g, float), np.asarray(inputs.rate_dps, float)], axis=1)
-        out = truth + err
+        n = err.shape[0]
+        # out = truth + err, truth = [force | rate]: added in place, the same sums without the temporaries.
+        out = np.empty((n, 6))
+        np.add(np.asarray(inputs.force_g, float).reshape(n, 3), err[:, :3], out=out[:, :3])
+        np.add(np.asarray(inputs.rate_dps, float).reshape(n, 3), err[:, 3:], out=out[:, 3:])
         if rng is not None:
-            out += rng.standard_normal(out.shape) * self.noise_sigma(sample_rate_hz)[None, :]
+            noise = rng.standard_normal(out.shape)
+            noise *= self.noise_sigma(sample_rate_hz)[None, :]
+            out += noise
         return out, new
 
     # -- serialisation --------------------------------------------------------------
@@ -214,6 +224,13 @@ class ImuModel:
                 out.effects[name] = effect_from_dict(name, eff) if isinstance(eff, Mapping) else eff
         out.__post_init__()
         return out
+
+
+def _copy_state(state: ModelState) -> ModelState:
+    """A copy the effects may update: their carried states deep-copied (the times and temperatures are floats;
+    a stream without effects carries nothing, and deep-copying the empty state was most of a chunk's copy cost)."""
+    return ModelState(t_s=state.t_s, temp_c=state.temp_c,
+                      carried=copy.deepcopy(state.carried) if state.carried else {})
 
 
 def effect_to_dict(eff: Effect) -> dict[str, Any]:
