@@ -66,15 +66,41 @@ def _crc_table16() -> np.ndarray:
 _CRC_TABLE16 = _crc_table16()
 
 
+def _byteswap16(v: np.ndarray) -> np.ndarray:
+    return ((v >> 8) | (v << 8)) & 0xFFFF
+
+
+def _crc_table16_le() -> np.ndarray:
+    """`_CRC_TABLE16` for a register kept byte-swapped, indexed by it xor a little-endian word: the bytes
+    as they lie in memory, no swap per step. As intp: the lookups index with it directly."""
+    v = np.arange(1 << 16, dtype=np.int64)
+    return _byteswap16(_CRC_TABLE16.astype(np.int64)[_byteswap16(v)]).astype(np.intp)
+
+
+_CRC_TABLE16_LE = _crc_table16_le()
+
+
+def crc16_words(words: np.ndarray) -> np.ndarray:
+    """CRC-16/CCITT-FALSE of each row of a (N, K) array of little-endian 16-bit words (the row's 2K bytes
+    in memory order, e.g. a frame's fields viewed as `<u2`), vectorised over rows, two bytes per lookup."""
+    reg = np.full(words.shape[0], 0xFFFF, dtype=np.intp)  # 0xFFFF is its own byte swap
+    for j in range(words.shape[1]):
+        np.bitwise_xor(reg, words[:, j], out=reg)
+        reg = _CRC_TABLE16_LE[reg]
+    return _byteswap16(reg).astype(np.uint16)
+
+
 def crc16_rows(rows: np.ndarray) -> np.ndarray:
     """CRC-16/CCITT-FALSE of each row of a (N, L) uint8 array, vectorised over rows (two bytes per step)."""
     n, width = rows.shape
-    crc = np.full(n, 0xFFFF, dtype=np.uint16)
     even = width - width % 2
     if even:
-        words = np.ascontiguousarray(rows[:, :even]).view(">u2")  # byte j in the high half, j+1 in the low
-        for j in range(even // 2):
-            crc = _CRC_TABLE16[crc ^ words[:, j]]
+        r = rows[:, :even]
+        if r.strides[1] != 1:
+            r = np.ascontiguousarray(r)
+        crc = crc16_words(r.view("<u2"))  # the words in memory order: byte j low, j+1 high
+    else:
+        crc = np.full(n, 0xFFFF, dtype=np.uint16)
     if width % 2:
         idx = ((crc >> 8) ^ rows[:, -1]) & 0xFF
         crc = ((crc << 8) & 0xFFFF) ^ _CRC_TABLE[idx]
@@ -90,18 +116,31 @@ def to_counts(values: np.ndarray, lsb: float) -> np.ndarray:
     return np.clip(np.rint(np.asarray(values, dtype=float) / lsb), -32768, 32767).astype(np.int16)
 
 
+# The frame as ten little-endian 16-bit words: sync, counter, accel x y z, gyro x y z, temp, crc.
+_WORDS = FRAME_SIZE // 2
+_VALUE_WORDS = slice(2, 9)  # accel, gyro, temp: int16 counts
+_CRC_WORDS = slice(1, 9)  # bytes 2..17
+_VALUE_LSB = np.array([ACCEL_LSB_G] * 3 + [GYRO_LSB_DPS] * 3 + [TEMP_LSB_C])
+
+
 def encode_frames(counter: np.ndarray, accel_g: np.ndarray, gyro_dps: np.ndarray, temp_c: np.ndarray) -> bytes:
     """Frames for N samples: counter (N,), accel (N,3) g, gyro (N,3) deg/s, temp (N,) degC."""
     n = int(np.asarray(counter).size)
-    frames = np.zeros(n, dtype=FRAME_DTYPE)
-    frames["sync"] = _SYNC_WORD
-    frames["counter"] = np.asarray(counter, dtype=np.int64) % COUNTER_MODULO
-    frames["accel"] = to_counts(accel_g, ACCEL_LSB_G)
-    frames["gyro"] = to_counts(gyro_dps, GYRO_LSB_DPS)
-    frames["temp"] = to_counts(temp_c, TEMP_LSB_C)
-    raw = frames.view(np.uint8).reshape(n, FRAME_SIZE)
-    frames["crc"] = crc16_rows(raw[:, _CRC_SPAN])
-    return frames.tobytes()
+    words = np.empty((n, _WORDS), dtype="<u2")  # the frame layout (FRAME_DTYPE), one row per frame
+    words[:, 0] = _SYNC_WORD
+    words[:, 1] = np.asarray(counter, dtype=np.int64) % COUNTER_MODULO
+    # The seven values as `to_counts` makes them, all at once: value / lsb, rounded, saturated, int16.
+    counts = np.empty((n, 7))
+    counts[:, 0:3] = np.asarray(accel_g, dtype=float).reshape(n, 3)
+    counts[:, 3:6] = np.asarray(gyro_dps, dtype=float).reshape(n, 3)
+    counts[:, 6] = np.asarray(temp_c, dtype=float).reshape(n)
+    counts /= _VALUE_LSB
+    np.rint(counts, out=counts)
+    np.maximum(counts, -32768, out=counts)
+    np.minimum(counts, 32767, out=counts)
+    np.copyto(words[:, _VALUE_WORDS].view("<i2"), counts, casting="unsafe")  # in range: the int16 itself
+    words[:, 9] = crc16_words(words[:, _CRC_WORDS])
+    return words.tobytes()
 
 
 @dataclass
@@ -185,7 +224,7 @@ class FrameDecoder:
         buf = np.concatenate((self._tail, np.frombuffer(data, dtype=np.uint8))) if self._tail.size else \
             np.frombuffer(data, dtype=np.uint8)
         n = buf.size
-        starts = np.flatnonzero((buf[:-1] == SYNC[0]) & (buf[1:] == SYNC[1])) if n >= 2 else np.zeros(0, np.int64)
+        starts = _sync_positions(buf)
         aligned = self._feed_aligned(buf, starts)
         if aligned is not None:
             return aligned
@@ -253,10 +292,10 @@ class FrameDecoder:
         if m == 0 or self._junk:
             return None
         frames = buf[:m * FRAME_SIZE].view(FRAME_DTYPE)
-        if not np.all(frames["sync"] == _SYNC_WORD):
+        words = buf[:m * FRAME_SIZE].view("<u2").reshape(m, _WORDS)
+        if not np.all(words[:, 0] == _SYNC_WORD):
             return None
-        rows = buf[:m * FRAME_SIZE].reshape(m, FRAME_SIZE)
-        if not np.array_equal(crc16_rows(rows[:, _CRC_SPAN]), frames["crc"]):
+        if not np.array_equal(crc16_words(words[:, _CRC_WORDS]), words[:, 9]):
             return None
         # Sync bytes inside payloads (or in the partial frame after the last whole one): candidate
         # frames the general path checks and rejects; one that passed would need its judgement.
@@ -290,6 +329,13 @@ class LabrunnerFrameCodec:
 
 
 LABRUNNER_FRAME = LabrunnerFrameCodec()
+
+
+def _sync_positions(buf: np.ndarray) -> np.ndarray:
+    """Offsets i where buf[i], buf[i+1] are the sync bytes, ascending: the first byte's positions (one pass
+    over the buffer), then the second byte checked there."""
+    first = np.flatnonzero(buf[:-1] == SYNC[0]) if buf.size >= 2 else np.zeros(0, np.int64)
+    return first[buf[first + 1] == SYNC[1]]
 
 
 def _non_overlapping(starts: np.ndarray) -> np.ndarray:

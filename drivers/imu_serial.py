@@ -245,6 +245,14 @@ class SerialImu:
         if len(dec):
             self._last_arrived16 = int(dec.counter[-1])
             counters, late = self._unwrap(dec.counter)
+            if late is None:  # all in order (the usual batch): kept as decoded, no selection copies
+                self._chunks.append((counters, dec.accel, dec.gyro, dec.temp))
+                self._buffered += counters.size
+                self._last = int(counters[-1])
+                self.frames_received += counters.size
+                self._trim()
+                self._cond.notify_all()
+                return
             fresh = ~late
             if fresh.any():
                 self._chunks.append((counters[fresh], dec.accel[fresh], dec.gyro[fresh], dec.temp[fresh]))
@@ -257,16 +265,21 @@ class SerialImu:
                 self._trim()
         self._cond.notify_all()
 
-    def _unwrap(self, counter16: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Unwrapped counters of a batch, relative to the newest so far, and which frames are late (or repeated)."""
+    def _unwrap(self, counter16: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Unwrapped counters of a batch, relative to the newest so far, and which frames are late (or
+        repeated); None for none late (the usual batch)."""
         c = counter16.astype(np.int64)
         prev = np.empty_like(c)
         prev[0] = (self._last % COUNTER_MODULO) if self._last is not None else c[0] - 1
         prev[1:] = c[:-1]
-        delta = (c - prev) % COUNTER_MODULO
+        delta = np.subtract(c, prev, out=prev)
+        delta %= COUNTER_MODULO
         base = self._last if self._last is not None else int(c[0]) - 1
-        if np.all((delta > 0) & (delta < COUNTER_MODULO - REORDER_WINDOW)):
-            return base + np.cumsum(delta), np.zeros(c.size, bool)  # in order (gaps allowed): the usual case
+        # In order (gaps allowed) when every step is in 1 .. COUNTER_MODULO - REORDER_WINDOW - 1.
+        if delta.size and int(delta.min()) > 0 and int(delta.max()) < COUNTER_MODULO - REORDER_WINDOW:
+            np.cumsum(delta, out=delta)
+            delta += base
+            return delta, None
         out = np.empty_like(c)
         late = np.zeros(c.size, bool)
         newest = base
