@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
 from labrunner.domain import CHANNELS
 
@@ -84,6 +83,10 @@ def unit_wander(t_s: np.ndarray, t0: float | None, state: np.ndarray | None,
         drive = z[:, j] * sd * np.sqrt(1.0 - a * a)[:, None]
         first = a[0] * x[j] + drive[0]
         if uniform:  # the common case: one linear filter after the first row
+            # Imported here: scipy.signal costs about a second of start-up, and the effect registry loads
+            # this module for every dry run (whose IMU model mostly has no bias instability).
+            from scipy.signal import lfilter
+
             rest = lfilter([1.0], [1.0, -a[1]], drive[1:], axis=0, zi=(a[1] * first)[None, :])[0]
             xs = np.vstack([first[None, :], rest])
         else:  # uneven rows: x[k] = a[k] x[k-1] + drive[k] in closed form
