@@ -28,7 +28,6 @@ import functools
 import logging
 from dataclasses import dataclass, field
 
-import allantools
 import numpy as np
 from scipy.optimize import nnls
 
@@ -96,6 +95,8 @@ def octave_taus(dt: float, longest_s: float) -> np.ndarray:
 def allan_curve(values: np.ndarray, parts: list[slice], dt: float, taus: np.ndarray) -> AllanCurve:
     """Overlapping Allan deviation of each column, pooled over the stretches (variances weighted
     by their number of terms)."""
+    import allantools  # here, not at the top: it loads scipy.stats (~1 s), which a fit never needs
+
     num = np.zeros((taus.size, values.shape[1]))
     terms = np.zeros(taus.size)
     for part in parts:
@@ -217,6 +218,8 @@ _ALPHA = (0, -1, -2)
 @functools.lru_cache(maxsize=4096)
 def _edf(alpha: int, m: int, rows: int) -> float:
     """Greenhall's EDF of the overlapping Allan variance of `rows` frequency values at m rows."""
+    import allantools
+
     return float(allantools.edf_greenhall(alpha=alpha, d=2, m=m, N=rows + 1, overlapping=True))
 
 
@@ -227,6 +230,8 @@ def confidence(measured: AllanCurve, parts: list[slice], dt: float, params: np.n
     that dominates the octave, pooled over the records as the curve is (Satterthwaite, weights the
     numbers of Allan terms). The deterministic fit's share of the slow noise is not in it: at the top
     octave the true scatter is somewhat wider."""
+    import allantools
+
     taus = measured.tau_s
     low = np.empty_like(measured.adev)
     high = np.empty_like(measured.adev)
