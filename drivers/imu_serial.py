@@ -412,7 +412,15 @@ class SerialImu:
             if not parts and not late and self.bytes_received > self._since_restart[0]:
                 self._check_stream()
         ka, kg, kt = self.codec.scale
-        if parts or late:
+        if parts and not late:
+            # Chunks in counter order, counters ascending: the window is one slice of them.
+            counter = np.concatenate([p[0] for p in parts]) if len(parts) > 1 else parts[0][0]
+            lo, hi = (int(i) for i in np.searchsorted(counter, (start, end), side="right"))
+            counter = counter[lo:hi].copy()
+            accel = _window([p[1] for p in parts], lo, hi) * ka
+            gyro = _window([p[2] for p in parts], lo, hi) * kg
+            temp = _window([p[3] for p in parts], lo, hi) * kt
+        elif parts or late:
             counter = np.concatenate([p[0] for p in parts + late])
             sel = (counter > start) & (counter <= end)
             counter = counter[sel]
@@ -431,3 +439,10 @@ class SerialImu:
         return ImuRecord(counter=counter, accel_g=accel, gyro_dps=gyro, temp_c=temp, expected=n_frames,
                          dropped=n_frames - int(counter.size), corrupt=corrupt,
                          lsb=self.codec.lsb)
+
+
+def _window(arrays: list[np.ndarray], lo: int, hi: int) -> np.ndarray:
+    """Rows lo:hi of the arrays stacked (only the chunks that hold them are joined)."""
+    if len(arrays) == 1:
+        return arrays[0][lo:hi]
+    return np.concatenate(arrays)[lo:hi]

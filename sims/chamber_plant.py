@@ -97,6 +97,9 @@ class ChamberPlant:
         kick = p.fluctuation_c * math.sqrt(1 - a * a)
         u = self.output_pct
         out: list[tuple[float, float]] = []
+        append = out.append
+        # The block of normals as locals (drawn ahead in blocks, taken one per step).
+        normals, k = self._normals, self._next_normal
         for _ in range(n):
             err = setpoint - air
             u_unsat = kp * (err + integral / ti)
@@ -111,19 +114,17 @@ class ChamberPlant:
             base = air - fluct
             base += (heat - cool + loss) * dt
             # Small random fluctuation of the air (mixing, compressor cycling): Ornstein-Uhlenbeck.
-            fluct = a * fluct + kick * self._normal()
+            if k == len(normals):
+                normals = self._normals = self._rng.standard_normal(_NORMALS_BLOCK).tolist()
+                k = 0
+            fluct = a * fluct + kick * normals[k]
+            k += 1
             air = base + fluct
             t += dt
-            out.append((t, air))
+            append((t, air))
+        self._next_normal = k
         self.air_c, self.integral, self._fluct, self.t, self.output_pct = air, integral, fluct, t, u
         return out
-
-    def _normal(self) -> float:
-        if self._next_normal == len(self._normals):
-            self._normals = self._rng.standard_normal(_NORMALS_BLOCK).tolist()
-            self._next_normal = 0
-        self._next_normal += 1
-        return self._normals[self._next_normal - 1]
 
     def advance_to(self, t: float) -> None:
         n, tt, step = 0, self.t, self.p.step_s

@@ -90,7 +90,7 @@ class ImuStreamSim:
             inputs = w.imu_inputs(times)
             out, self.state = w.model.simulate(inputs, self.rate_hz, self._rng, self.state)
             self._next_k = k_last + 1
-        return ks, self.codec.encode(ks, out[:, :3], out[:, 3:], inputs.temp_c, t_s=times - w.t_on)
+        return ks, self.codec.encode(ks, out[:, :3], out[:, 3:], inputs.temp_c, t_s=inputs.t_on_s)
 
     def _send(self, ks: np.ndarray, data: bytes) -> None:
         f = self.faults

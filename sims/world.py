@@ -142,12 +142,16 @@ class SimWorld:
             a = math.exp(-step / self.thermal.case_tau_s)
             b = 1 - a
             case = self.case_c
-            rows = []
-            for t_k, air in self.chamber.run_steps(n, step):
+            steps = self.chamber.run_steps(n, step)
+            cases = []
+            for _, air in steps:
                 case = a * case + b * air
-                rows.append((t_k, case, air))
+                cases.append(case)
             self.case_c = case
-            self._append_history(np.array(rows))
+            rows = np.empty((n, 3))
+            rows[:, 0::2] = steps  # (t, air) pairs into columns 0 and 2
+            rows[:, 1] = cases
+            self._append_history(rows)
 
     def _append_history(self, rows: np.ndarray) -> None:
         """Append rows (t, case, air) to the history, keeping at least HISTORY_S of it."""
@@ -186,9 +190,16 @@ class SimWorld:
             case = self._history(times, 1)
             if not self.powered:
                 return case
-            since_on = np.maximum(np.asarray(times, dtype=float) - self.t_on, 0.0)
-            return case + self.imu_extra_heat_c + self.thermal.self_heat_c * (
-                1.0 - np.exp(-since_on / self.thermal.self_heat_tau_s))
+            # case + extra + self_heat * (1 - exp(-since_on / tau)), in place in that order
+            heat = np.maximum(np.asarray(times, dtype=float) - self.t_on, 0.0)
+            np.negative(heat, out=heat)
+            heat /= self.thermal.self_heat_tau_s
+            np.exp(heat, out=heat)
+            np.subtract(1.0, heat, out=heat)
+            heat *= self.thermal.self_heat_c
+            case += self.imu_extra_heat_c
+            case += heat
+            return case
 
     def imu_inputs(self, times: np.ndarray) -> ImuInputs:
         times = np.asarray(times, dtype=float)
