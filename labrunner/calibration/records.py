@@ -76,6 +76,10 @@ class Records:
     sem: np.ndarray  # (R, 6) standard error of the mean from the within-record scatter (nan if 1 row)
     reference: np.ndarray  # (R, 6)
     step: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (R,) step index, -1 none
+    # (R,) each record's first row and one past its last, as positions in the campaign: what a chunked
+    # fit keeps of the rows (no per-row label of the whole campaign; `row_record` is then empty).
+    row_start: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    row_stop: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def __len__(self) -> int:
         return int(self.run.size)
@@ -103,7 +107,17 @@ class Records:
             t_end_s=self.t_end_s[idx], n_rows=self.n_rows[idx], row_interval_s=self.row_interval_s[idx],
             mean=self.mean[idx], sem=self.sem[idx], reference=self.reference[idx],
             step=self.step[idx] if self.step.size else self.step,
+            row_start=self.row_start[idx] if self.row_start.size else self.row_start,
+            row_stop=self.row_stop[idx] if self.row_stop.size else self.row_stop,
         )
+
+    def labels(self, n_rows: int) -> np.ndarray:
+        """(n_rows,) the record index of every row, -1 outside records, from the records' row ranges
+        (records are disjoint row ranges; a masked training part's ranges are its records' extents)."""
+        out = np.full(n_rows, -1, dtype=np.int64)
+        for label, (s, e) in enumerate(zip(self.row_start.tolist(), self.row_stop.tolist())):
+            out[s:e] = label
+        return out
 
 
 @dataclass
@@ -267,7 +281,21 @@ def segment_records(frame: pd.DataFrame, options: RecordOptions | None = None) -
     opt = options or RecordOptions()
     a = frame_arrays(frame)
     n = a["t"].size
-    starts = _segment_starts(a, opt)
+    starts, stops, interval = record_bounds(a, _segment_starts(a, opt), opt, lambda: _typical_interval(a["t"]))
+    row_record = np.full(n, -1, dtype=np.int64)
+    for label, (s, e) in enumerate(zip(starts.tolist(), stops.tolist())):  # records are disjoint row ranges
+        row_record[s:e] = label
+    return records_from_labels(a, row_record, interval)
+
+
+def record_bounds(a: dict[str, Any], starts: np.ndarray, opt: RecordOptions,
+                  typical: Callable[[], float] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows [start, stop) and row interval of the records among the segments starting at `starts` (the
+    rows of `a` from starts[0] to its end): drifting segments cut into stable pieces, ramps and short
+    pieces dropped. `typical()` is the campaign's typical row interval, the duration a one-row record
+    stands for; with None, one-row records are kept with a NaN interval (decided by the caller once the
+    whole campaign's interval is known)."""
+    n = a["t"].size
     stops = np.append(starts[1:], n)
     temp, rate = a["temp"], a["rate"]
 
@@ -288,18 +316,17 @@ def segment_records(frame: pd.DataFrame, options: RecordOptions | None = None) -
     counts = stops - starts
     span_time = a["t"][stops - 1] - a["t"][starts]
     # A one-row record stands for the typical row interval (averaged rows a few seconds apart).
-    typical = _typical_interval(a["t"]) if (counts == 1).any() else 1.0
-    interval = np.where(counts > 1, span_time / np.maximum(counts - 1, 1), typical)
+    one = counts == 1
+    typ = (typical() if typical is not None else np.nan) if one.any() else 1.0
+    interval = np.where(counts > 1, span_time / np.maximum(counts - 1, 1), typ)
     # Soaks only: a record whose temperature drifts (a ramp) is not a calibration point.
     drift = np.abs(temp[stops - 1] - temp[starts])
-    keep = (counts > 0) & (counts * interval >= opt.min_duration_s) \
+    long_enough = counts * interval >= opt.min_duration_s
+    if typical is None:
+        long_enough |= one
+    keep = (counts > 0) & long_enough \
         & (drift <= opt.max_drift_c_per_min * span_time / 60.0 + opt.drift_allowance_c)
-    starts, stops, interval = starts[keep], stops[keep], interval[keep]
-
-    row_record = np.full(n, -1, dtype=np.int64)
-    for label, (s, e) in enumerate(zip(starts.tolist(), stops.tolist())):  # records are disjoint row ranges
-        row_record[s:e] = label
-    return records_from_labels(a, row_record, interval)
+    return starts[keep], stops[keep], interval[keep]
 
 
 def _typical_interval(t: np.ndarray) -> float:
@@ -387,6 +414,7 @@ def records_from_labels(a: dict[str, Any], row_record: np.ndarray, row_interval_
         t_start_s=a["t"][first], t_end_s=a["t"][last], n_rows=cnt,
         row_interval_s=np.asarray(row_interval_s, dtype=float), mean=mean, sem=sem,
         reference=reference_values(orient, rate), step=np.full(n_rec, -1, dtype=np.int64),
+        row_start=first.astype(np.int64), row_stop=last.astype(np.int64) + 1,
     )
 
 
