@@ -299,7 +299,12 @@ class FrameDecoder:
             return None
         # Sync bytes inside payloads (or in the partial frame after the last whole one): candidate
         # frames the general path checks and rejects; one that passed would need its judgement.
-        inner = starts[(starts % FRAME_SIZE != 0) & (starts + FRAME_SIZE <= buf.size)]
+        # The m frame starts are sync positions, and so is the partial frame's start when it has its
+        # sync word: any more, and some lie inside (the usual stream has none: nothing to sift).
+        end = m * FRAME_SIZE
+        at_starts = m + int(buf.size >= end + 2 and buf[end] == SYNC[0] and buf[end + 1] == SYNC[1])
+        inner = starts[(starts % FRAME_SIZE != 0) & (starts + FRAME_SIZE <= buf.size)] \
+            if starts.size != at_starts else starts[:0]
         if inner.size:
             cand = buf[inner[:, None] + np.arange(FRAME_SIZE)]
             crc = cand[:, 18].astype(np.uint16) | (cand[:, 19].astype(np.uint16) << 8)
