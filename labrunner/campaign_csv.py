@@ -198,7 +198,18 @@ def _categories(series: pd.Series) -> tuple[np.ndarray, list[str]]:
     return codes, labels
 
 
+_ORIENTATION_DTYPE = pd.CategoricalDtype(list(ORIENTATIONS))  # what `_orientations` returns
+
+
 def _orientations(series: pd.Series, label: str, from_csv: bool, first_row: int = 0) -> pd.Categorical:
+    values = series.array
+    if (isinstance(values, pd.Categorical) and values.dtype == _ORIENTATION_DTYPE
+            and values.categories.dtype == _ORIENTATION_DTYPE.categories.dtype):
+        # Already the six orientations as categories (a store's read): the codes are the answer unless
+        # a cell is missing (code -1), which the general path names. One pass, no copy.
+        codes = np.asarray(values.codes)
+        if codes.size == 0 or codes.min() >= 0:
+            return values
     codes, labels = _categories(series)
     known = np.array([lab in ORIENTATIONS for lab in labels])
     target = np.array([ORIENTATIONS.index(lab) if ok else -1 for lab, ok in zip(labels, known)], dtype=np.int8)

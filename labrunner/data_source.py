@@ -34,8 +34,8 @@ class CampaignData:
 
 def step_progress(store: Any, campaign_id: int) -> dict[str, int]:
     """Steps planned and recorded (status done) of a stored campaign: a fit says when they differ."""
-    steps = store.steps_frame(campaign_id)
-    return {"steps_planned": int(len(steps)), "steps_recorded": int((steps["status"] == "done").sum())}
+    planned, recorded = store.step_counts(campaign_id)
+    return {"steps_planned": planned, "steps_recorded": recorded}
 
 
 def load_campaign_data(path: str | Path | StoreAddress, campaign: int | None = None, *,
@@ -61,11 +61,20 @@ def load_campaign_data(path: str | Path | StoreAddress, campaign: int | None = N
 def _from_store(address: StoreAddress, campaign: int | None, include_monitor: bool) -> CampaignData:
     from labrunner.store import Store
 
-    with Store.open_existing(address) as store:
+    # The sample blocks' pages are checked by reading them all (see Store.open_existing).
+    with Store.open_existing(address, check_samples=False) as store:
         data = store.campaign_data(campaign, include_monitor=include_monitor)
         data.provenance.update(step_progress(store, int(data.provenance["campaign_id"])))
-        data.frame = mark_power_ons(data.frame, store.events_frame(int(data.provenance["campaign_id"])))
+        data.frame = mark_power_ons(data.frame, store_power_on_events(store, int(data.provenance["campaign_id"])))
         return data
+
+
+POWER_ON_TEXT = "powered on (run "  # what every message `power_on_runs` reads contains
+
+
+def store_power_on_events(store: Any, campaign_id: int) -> pd.DataFrame:
+    """The events `power_on_runs` reads (their messages), without reading the campaign's other events."""
+    return pd.DataFrame({"message": pd.Series(store.event_messages(campaign_id, POWER_ON_TEXT), dtype=object)})
 
 
 def power_on_runs(events: pd.DataFrame) -> set[int]:
@@ -73,7 +82,7 @@ def power_on_runs(events: pd.DataFrame) -> set[int]:
     import re
 
     return {int(m.group(1)) for text in events.get("message", pd.Series(dtype=str)).astype(str)
-            if (m := re.search(r"powered on \(run (\d+)\)", text))}
+            if (m := re.search(re.escape(POWER_ON_TEXT) + r"(\d+)\)", text))}
 
 
 class PowerOnMarks:
@@ -122,7 +131,7 @@ def campaign_chunks(path: str | Path | StoreAddress, campaign: int | None = None
     from labrunner.store import Store
 
     address = store_address(path)
-    store = Store.open_existing(address)
+    store = Store.open_existing(address, check_samples=False)
     try:
         cid = store.resolve(campaign)
         info = store.campaign(cid)
@@ -136,7 +145,7 @@ def campaign_chunks(path: str | Path | StoreAddress, campaign: int | None = None
             "t_range_s": list(store.time_range(cid, kinds)), "recorded_with": info.software_version,
         }
         provenance.update(step_progress(store, cid))
-        marks = PowerOnMarks(store.events_frame(cid))
+        marks = PowerOnMarks(store_power_on_events(store, cid))
     except BaseException:
         store.close()
         raise

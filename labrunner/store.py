@@ -44,6 +44,7 @@ from sqlalchemy import (
     String,
     Table,
     Text,
+    case,
     create_engine,
     event,
     func,
@@ -100,6 +101,8 @@ class StoreUnavailable(StoreError):
         UserError.__init__(self, message)
 
 
+# What SQLite says when a page it reads is damaged.
+_DAMAGED = ("database disk image is malformed", "file is not a database")
 # What SQLite says of a file that is not a labrunner store (another file, an empty or another database).
 _NOT_A_STORE = ("file is not a database", "no such table", "does not exist")  # PG: relation "..." does not exist
 
@@ -326,38 +329,71 @@ class _BlockColumns:
     preallocated to `total` rows: the one block -> columns conversion (`Store.samples_frame` and
     `Store.frames`). No per-row Python objects (orientation is one code per block), no concatenation.
 
-    `lsb`: the campaign's one set of LSB sizes (the IMU channels kept as int16 counts) or None
-    (float64). `labels` are the orientation categories, the six first; a new label is appended to
-    the list given (`Store.frames` shares it between chunks)."""
+    The IMU channels (accelerometer, gyro, temperature) are kept as the stored int16 counts when
+    `counts` and every block holds counts of the same LSB sizes, else float64. `lsb`: those sizes,
+    decided beforehand (`Store.frames`: every chunk alike), or None to find them from the blocks
+    (the first block's; a block of other sizes or of floats turns the columns into float64, the
+    values the decoding gives). `labels` are the orientation categories, the six first; a new label
+    is appended to the list given (`Store.frames` shares it between chunks)."""
+
+    _IMU = (*ACCEL_COLUMNS, *GYRO_COLUMNS, "imu_temp_c")
 
     def __init__(self, total: int, lsb: tuple[float, float, float] | None, labels: list[str], path: StoreAddress,
-                 *, with_steps: bool = False) -> None:
-        self.total, self.lsb, self.labels, self.path, self.with_steps = total, lsb, labels, path, with_steps
-        self.cols: dict[str, np.ndarray] = {c: np.empty(total) for c in COLUMNS if c not in ("run", "orientation")}
-        if lsb is not None:  # the blobs' layout: a block's (n, 3) counts are one copy, the columns views
-            self.accel_counts = np.empty((total, 3), dtype=np.int16)
-            self.gyro_counts = np.empty((total, 3), dtype=np.int16)
-            self.cols.update({c: self.accel_counts[:, j] for j, c in enumerate(ACCEL_COLUMNS)}
-                             | {c: self.gyro_counts[:, j] for j, c in enumerate(GYRO_COLUMNS)}
-                             | {"imu_temp_c": np.empty(total, dtype=np.int16)})
+                 *, counts: bool, with_steps: bool = False) -> None:
+        self.total, self.labels, self.path, self.with_steps = total, labels, path, with_steps
+        self.cols: dict[str, np.ndarray] = {c: np.empty(total) for c in ("t_s", "chamber_c", "table_rate_dps")}
+        self.lsb: tuple[float, float, float] | None = None
+        self.undecided = counts and lsb is None  # counts wanted, LSB sizes from the first block
+        if counts and lsb is not None:
+            self._counts(lsb)
+        elif not counts:
+            self._floats()
         self.run = np.empty(total, dtype=np.int64)
         self.codes = np.empty(total, dtype=np.int8)
         self.step_idx = np.empty(total if with_steps else 0)
         self.kind = np.empty(total if with_steps else 0, dtype=object)
         self.at = 0
+        self.first_t = np.inf  # the earliest block start and latest block end filled (the time range of
+        self.last_t = -np.inf  # rows whose time ascends within each block: a validated campaign's)
+
+    def _counts(self, lsb: tuple[float, float, float]) -> None:
+        # The blobs' layout: a block's (n, 3) counts are one copy, the columns views.
+        self.lsb = lsb
+        self.accel_counts = np.empty((self.total, 3), dtype=np.int16)
+        self.gyro_counts = np.empty((self.total, 3), dtype=np.int16)
+        self.cols.update({c: self.accel_counts[:, j] for j, c in enumerate(ACCEL_COLUMNS)}
+                         | {c: self.gyro_counts[:, j] for j, c in enumerate(GYRO_COLUMNS)}
+                         | {"imu_temp_c": np.empty(self.total, dtype=np.int16)})
+
+    def _floats(self) -> None:
+        """The IMU columns as float64 from here on: the counts filled so far converted (counts x LSB in
+        float64, what `_decode` gives)."""
+        lsb, self.lsb = self.lsb, None
+        for j, c in enumerate(self._IMU):
+            values = np.empty(self.total)
+            if lsb is not None:
+                np.multiply(self.cols[c][:self.at], lsb[0 if j < 3 else 1 if j < 6 else 2], out=values[:self.at],
+                            dtype=np.float64)
+            self.cols[c] = values
 
     def add(self, row: Any) -> bool:
         """Fill the next rows from a stored block row (`StoreDamage` if its blobs do not hold what it
         says); False when it does not fit what was counted (a block written since: not read)."""
         block_lsb = _checked_row(row, self.path)
         n = int(row["n"])
-        if n == 0:
-            return True
+        if self.undecided:  # an empty block's encoding counts too: it is one of the campaign's blocks
+            self.undecided = False
+            if block_lsb is None:
+                self._floats()
+            else:
+                self._counts(block_lsb)
         at, cols = self.at, self.cols
         if at + n > self.total:  # rows written since the count: read what was counted
             return False
-        if self.lsb is not None and block_lsb != self.lsb:  # only a block written since the count can differ
-            return False
+        if self.lsb is not None and block_lsb != self.lsb:
+            self._floats()  # counts of other LSB sizes, or floats: the columns are decoded from here on
+        if n == 0:
+            return True
         sl = slice(at, at + n)
         # SampleBlock.times() computed in place: t0 + (counter - counter[0]) / rate (whole numbers below
         # 2**31 subtract exactly in float64)
@@ -366,14 +402,16 @@ class _BlockColumns:
         np.subtract(counter, counter[0], out=t, dtype=np.float64)
         np.divide(t, row["rate_hz"], out=t)
         np.add(t, row["t0_s"], out=t)
+        self.first_t = min(self.first_t, float(t[0]))
+        self.last_t = max(self.last_t, float(t[-1]))
         orientation = row["orientation"]
         if orientation not in self.labels:
             self.labels.append(orientation)
         self.codes[sl] = self.labels.index(orientation)
         self.run[sl] = row["run"]
-        cols["chamber_c"][sl] = interp_readings(t, np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2))
-        cols["table_rate_dps"][sl] = interp_readings(t, np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2),
-                                                      default=0.0)
+        interp_readings(t, np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2), out=cols["chamber_c"][sl])
+        interp_readings(t, np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2), default=0.0,
+                        out=cols["table_rate_dps"][sl])
         enc, la, lg, lt = row["encoding"], row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]
         if self.lsb is not None:  # the stored counts as they are: one encoding and LSB
             self.accel_counts[sl] = np.frombuffer(row["accel_g"], dtype="<i2").reshape(n, 3)
@@ -395,9 +433,12 @@ class _BlockColumns:
 
     def frame(self, categorical: bool, *, sort: bool, start: int = 0) -> pd.DataFrame:
         """The rows filled, as a frame (see `Store.samples_frame`); `sort`: stably by time (monitor
-        rows among the records). Its RangeIndex starts at `start`."""
+        rows among the records; rows already in time order are left as they are). Its RangeIndex
+        starts at `start`."""
         import pandas as pd
 
+        if self.undecided:  # no block at all
+            self._floats()
         at, cols = self.at, self.cols
         orientation_col: Any = pd.Categorical.from_codes(self.codes[:at], categories=list(self.labels))
         if not categorical:
@@ -413,7 +454,8 @@ class _BlockColumns:
         if self.with_steps:
             data.update(kind=self.kind[:at], state=np.full(at, None, dtype=object), step_idx=self.step_idx[:at])
         frame = pd.DataFrame(data, copy=False)
-        if sort:
+        t = cols["t_s"][:at]
+        if sort and not bool((t[1:] >= t[:-1]).all()):  # (a stable sort of sorted rows changes nothing)
             frame = frame.sort_values("t_s", kind="stable").reset_index(drop=True)
         if start:
             frame.index = pd.RangeIndex(start, start + len(frame))
@@ -544,6 +586,8 @@ class Store:
         # heartbeat check the token in the database, so a process whose lease was taken over stops.
         self.leases: dict[int, str] = {}
         self.lost: set[int] = set()
+        # The open's quick_check left the sample blocks to the reads (`open_existing(check_samples=False)`).
+        self.samples_unchecked = False
 
     # --- opening ---------------------------------------------------------------------------
 
@@ -610,9 +654,16 @@ class Store:
         return cls.open_existing(a)
 
     @classmethod
-    def open_existing(cls, path: str | Path | StoreAddress, *, check: bool = True) -> Store:
+    def open_existing(cls, path: str | Path | StoreAddress, *, check: bool = True,
+                      check_samples: bool = True) -> Store:
         """Open a store (migrating a schema-1 one). `check`: run SQLite's quick_check first and raise
-        `StoreDamage` when it finds damage (`labrunner check --db` opens without it, to report all)."""
+        `StoreDamage` when it finds damage (`labrunner check --db` opens without it, to report all).
+
+        `check_samples=False` leaves the sample_blocks table (nearly all of a store's pages) out of that
+        check, for a reader that reads a campaign's blocks anyway: the blocks' own pages are checked by
+        reading them (SQLite refuses a damaged page), and a read that fails so runs the whole check and
+        raises its `StoreDamage` (`_block_rows`). A store whose other tables are damaged is refused at
+        the open as before."""
         a = store_address(path)
         if a.file is not None and not a.file.exists():
             raise UserError(f"{a}: database not found")
@@ -652,7 +703,8 @@ class Store:
         store = cls(engine, a)
         try:
             if check:
-                store.quick_check()
+                store.quick_check(skip=() if check_samples else (sample_blocks.name,))
+            store.samples_unchecked = check and not check_samples
         except BaseException:
             engine.dispose()
             raise
@@ -679,23 +731,30 @@ class Store:
 
     # --- damage ------------------------------------------------------------------------------
 
-    def _pragma_check(self, pragma: str) -> list[str]:
-        """What SQLite's `quick_check`/`integrity_check` finds (empty: nothing), up to 20 lines."""
+    def _pragma_check(self, pragma: str, tables: Sequence[str] | None = None) -> list[str]:
+        """What SQLite's `quick_check`/`integrity_check` finds (empty: nothing), up to 20 lines; of the
+        given tables (and their indexes) only, if given."""
         if self.engine.dialect.name != "sqlite":
             return []  # other servers keep their own page checksums
         try:
             with self.engine.connect() as conn:
-                rows = [str(r) for r in conn.exec_driver_sql(f"PRAGMA {pragma}(20)").scalars()]
+                rows = [str(r) for arg in (["20"] if tables is None else tables)
+                        for r in conn.exec_driver_sql(f"PRAGMA {pragma}({arg})").scalars()]
         except _STORE_FAILURES as exc:
             return [str(getattr(exc, "orig", None) or exc)]
         # A row may hold several lines and a "*** in database main ***" heading: one problem a line.
         lines = [line.strip() for r in rows for line in r.splitlines()
                  if line.strip() and not line.startswith("*** in database")]
-        return [] if lines == ["ok"] else lines
+        return [line for line in lines if line != "ok"]
 
-    def quick_check(self) -> None:
+    def quick_check(self, skip: Sequence[str] = ()) -> None:
         """Raise `StoreDamage` when SQLite's quick_check finds damaged pages (run on every open: it reads
-        every page but skips the index-content comparison of integrity_check)."""
+        every page but skips the index-content comparison of integrity_check). `skip`: tables left out
+        (checked table by table; damage found so is then named by the whole check)."""
+        if skip:
+            tables = [t.name for t in metadata.sorted_tables if t.name not in skip]
+            if not self._pragma_check("quick_check", tables):
+                return
         problems = self._pragma_check("quick_check")
         if problems:
             raise StoreDamage(f"{self.path}: the database is damaged: {self._locate_pages()}"
@@ -794,8 +853,15 @@ class Store:
     @contextmanager
     def reading(self) -> Iterator[Connection]:
         """A connection for reads; a database that cannot be read raises `StoreError`."""
-        with self._guard("read"), self.engine.connect() as conn:
-            yield conn
+        try:
+            with self._guard("read"), self.engine.connect() as conn:
+                yield conn
+        except StoreError as exc:
+            # Damage in the sample pages the open's check left to the reads (SQLITE_CORRUPT,
+            # SQLITE_NOTADB): the whole check names it, as an open does.
+            if self.samples_unchecked and any(m in exc.cause for m in _DAMAGED):
+                self.quick_check()
+            raise
 
     # --- campaigns ---------------------------------------------------------------------------
 
@@ -1132,6 +1198,25 @@ class Store:
         with self.reading() as conn:
             return pd.read_sql(select(steps).where(steps.c.campaign_id == campaign_id).order_by(steps.c.idx), conn)
 
+    def step_counts(self, campaign_id: int) -> tuple[int, int]:
+        """Steps planned and steps recorded (status done) of a campaign."""
+        q = select(func.count(), func.coalesce(func.sum(case((steps.c.status == "done", 1), else_=0)), 0)).where(
+            steps.c.campaign_id == campaign_id)
+        with self.reading() as conn:
+            planned, done = conn.execute(q).one()
+        return int(planned), int(done)
+
+    def event_messages(self, campaign_id: int, containing: str) -> list[str]:
+        """The messages of a campaign's events that contain `containing`, in event order (without
+        reading the other events: a campaign logs tens of thousands)."""
+        pattern = containing.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+        q = (select(events.c.message).where(events.c.campaign_id == campaign_id,
+                                            events.c.message.like(f"%{pattern}%", escape="\\"))
+             .order_by(events.c.id))
+        with self.reading() as conn:
+            # LIKE ignores ASCII letter case on SQLite: the exact test is Python's.
+            return [m for m in conn.execute(q).scalars() if containing in m]
+
     def events_frame(self, campaign_id: int, last: int | None = None) -> pd.DataFrame:
         import pandas as pd
 
@@ -1209,14 +1294,18 @@ class Store:
         kinds = ("record", "monitor") if include_monitor else ("record",)
         # Columns preallocated to the stored sample count and filled block by block: no per-row
         # Python objects (orientation is one code per block) and no concatenation copy.
+        frame, _ = self._samples(campaign_id, kinds, categorical=categorical, counts=counts, with_steps=with_steps)
+        return self._with_steps(campaign_id, frame, remount_c) if with_steps else frame
+
+    def _samples(self, campaign_id: int, kinds: Sequence[str], *, categorical: bool, counts: bool,
+                 with_steps: bool = False) -> tuple[pd.DataFrame, _BlockColumns]:
+        """`samples_frame` without the step columns, and the columns it was made of."""
         total = self.sample_count(campaign_id, kinds)
-        lsb = self._one_lsb(campaign_id, kinds) if counts else None  # after the count: later blocks are not read
-        cols = _BlockColumns(total, lsb, list(ORIENTATIONS), self.path, with_steps=with_steps)
+        cols = _BlockColumns(total, None, list(ORIENTATIONS), self.path, counts=counts, with_steps=with_steps)
         for row in self._block_rows(campaign_id, kinds):
             if not cols.add(row):
                 break
-        frame = cols.frame(categorical, sort=include_monitor)
-        return self._with_steps(campaign_id, frame, remount_c) if with_steps else frame
+        return cols.frame(categorical, sort="monitor" in kinds), cols
 
     def frames(self, campaign_id: int, *, max_rows: int = 1 << 20, include_monitor: bool = False,
                categorical: bool = True, counts: bool = True, min_gap_s: float | None = None
@@ -1247,7 +1336,7 @@ class Store:
 
         def flush() -> pd.DataFrame:
             nonlocal pending, held, last, start
-            cols = _BlockColumns(held, lsb, labels, self.path)
+            cols = _BlockColumns(held, lsb, labels, self.path, counts=lsb is not None)
             for r in pending:
                 if not cols.add(r):
                     break
@@ -1322,29 +1411,48 @@ class Store:
 
         cid = self.resolve(campaign_id)
         info = self.campaign(cid)
-        frame = self.samples_frame(cid, include_monitor=include_monitor, categorical=True, counts=True)
+        kinds = ("record", "monitor") if include_monitor else ("record",)
+        frame, cols = self._samples(cid, kinds, categorical=True, counts=True)
         if frame.empty:
             raise UserError(f"{self.path}: campaign {cid} has no recorded samples yet")
         # (read_campaign keeps the int16-count columns as they are: finite by construction.)
         frame = read_campaign(frame, name=f"{self.path} campaign {cid}")
+        # The time range without a pass over the rows: with monitor rows the frame is in time order;
+        # records only, validated, their times ascend within each run, so within each block, and the
+        # earliest block start and the latest block end are the time column's minimum and maximum.
+        t = frame["t_s"].to_numpy()
+        t_range = [float(t[0]), float(t[-1])] if include_monitor else [cols.first_t, cols.last_t]
         return CampaignData(frame=frame, store=self.path, provenance={
             "source": str(self.path.resolve()), "kind": "store", "campaign_id": cid, "campaign": info.name,
             "procedure_sha256": info.procedure_sha256, "status": info.status, "rows": len(frame),
-            "t_range_s": [float(frame.t_s.min()), float(frame.t_s.max())],
+            "t_range_s": t_range,
             "recorded_with": info.software_version,
         })
 
 
-def interp_readings(t: np.ndarray, readings: np.ndarray, default: float = float("nan")) -> np.ndarray:
-    """Instrument readings taken during a block, interpolated to the sample times."""
+def interp_readings(t: np.ndarray, readings: np.ndarray, default: float = float("nan"),
+                    out: np.ndarray | None = None) -> np.ndarray:
+    """Instrument readings taken during a block, interpolated to the sample times (into `out` if given)."""
     if readings.size == 0:
-        return np.full(t.size, default)
+        return _filled(t.size, default, out)
     first = readings[0, 1]
     if readings.shape[0] == 1:
-        return np.full(t.size, first)
-    if (readings[:, 1] == first).all() and not np.signbit(first):
-        return np.full(t.size, first)  # a steady reading (the table's rate): what np.interp gives, without the search
-    return np.interp(t, readings[:, 0], readings[:, 1])
+        return _filled(t.size, first, out)
+    # A steady reading (the table's rate, a soak's chamber): np.interp gives that value bit for bit
+    # (slope 0: 0 * dx + value), except for -0.0 (0.0 + -0.0 is 0.0), so that one is interpolated.
+    if (readings[:, 1] == first).all() and (first != 0 or not np.signbit(first)):
+        return _filled(t.size, first, out)
+    if out is None:
+        return np.interp(t, readings[:, 0], readings[:, 1])
+    out[:] = np.interp(t, readings[:, 0], readings[:, 1])
+    return out
+
+
+def _filled(n: int, value: float, out: np.ndarray | None) -> np.ndarray:
+    if out is None:
+        return np.full(n, value)
+    out.fill(value)
+    return out
 
 
 __all__ = ["CampaignInfo", "LeaseHolder", "LeaseLost", "SampleBlock", "Store", "StoreDamage", "StoreError"]

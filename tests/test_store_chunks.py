@@ -153,3 +153,36 @@ def test_a_campaign_csv_is_one_chunk(recorded, tmp_path):
 def test_max_rows_must_be_positive(recorded):
     with Store.open_existing(recorded) as s, pytest.raises(ValueError, match="max_rows"):
         next(s.frames(s.resolve(None), max_rows=0))
+
+
+def _garble_sample_page(db: Path) -> None:
+    """Overwrite the middle of one of sample_blocks' interior (b-tree) pages, the kind of damage SQLite
+    refuses on reading."""
+    import sqlite3
+
+    with sqlite3.connect(db) as conn:
+        size = conn.execute("PRAGMA page_size").fetchone()[0]
+        pages = [r[0] for r in conn.execute("SELECT pageno FROM dbstat WHERE name = 'sample_blocks' "
+                                            "AND pagetype IN ('leaf', 'internal') ORDER BY pageno")]
+    with db.open("r+b") as f:
+        f.seek((pages[len(pages) // 2] - 1) * size + 100)
+        f.write(b"\xa5" * (size - 200))
+
+
+def test_damage_in_the_sample_pages_is_named_as_the_open_names_it(recorded, tmp_path):
+    """load_campaign_data and campaign_chunks leave sample_blocks out of the open's check (they read its
+    pages anyway): a damaged sample page still gives the StoreDamage line the full check gives."""
+    from labrunner.store import StoreDamage
+
+    db = tmp_path / "garbled.db"
+    db.write_bytes(recorded.read_bytes())
+    _garble_sample_page(db)
+    with pytest.raises(StoreDamage) as opened:
+        Store.open_existing(db)
+    assert "the database is damaged" in str(opened.value) and "quick_check" in str(opened.value)
+    with pytest.raises(StoreDamage) as loaded:
+        load_campaign_data(db)
+    assert str(loaded.value) == str(opened.value)
+    with pytest.raises(StoreDamage) as chunked:  # at the call (the block rows counted) or in the chunks
+        list(campaign_chunks(db, max_rows=1)[1])
+    assert str(chunked.value) == str(opened.value)
