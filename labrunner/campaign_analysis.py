@@ -62,14 +62,22 @@ def fit(data: str | Path | StoreAddress | CampaignData, *, campaign: int | None 
         source, is_store = _source(data)
         check_output(out, store=source if is_store else None, inputs=[source], force=force, directory=True,
                      option="out")
-    loaded = data if isinstance(data, CampaignData) else load_data(data, campaign=campaign)
-    result = fit_campaign(loaded.frame, opts, provenance=loaded.provenance, progress=progress)
-    prov = loaded.provenance
+    address: str | Path | StoreAddress | None
+    if isinstance(data, CampaignData):
+        prov, address = data.provenance, data.store
+        result = fit_campaign(data.frame, opts, provenance=prov, progress=progress)
+    else:
+        from labrunner.calibration.fit_rows import campaign_rows
+
+        # A store's campaign is read in chunks (the fit keeps record summaries and bounded row sets).
+        prov, rows = campaign_rows(data, campaign)
+        address = data if prov.get("kind") == "store" else None
+        result = fit_campaign(rows, opts, provenance=prov, progress=progress)
     if save and prov.get("kind") == "store":
         from labrunner.store import Store
 
         # The address read (a URL's password included); the provenance shows it masked.
-        with Store.open_existing(loaded.store or prov["source"]) as store:
+        with Store.open_existing(address or prov["source"]) as store:
             fit_id = store.save_fit(int(prov["campaign_id"]), result.to_dict(), result.provenance)
         log.info("fit %d stored in %s (campaign %s)", fit_id, prov["source"], prov["campaign_id"])
         if progress is not None:

@@ -24,17 +24,17 @@ def fit_and_store(store: Store, campaign_id: int, fit_cfg: Fit, out_dir: str | P
     """Fit the campaign's records as the procedure's `fit` section says; returns the summary text."""
     # Imported here: the calibration stack (scipy, matplotlib) is only needed once a campaign ends.
     from labrunner.calibration.fit import FitOptions, fit_campaign
+    from labrunner.calibration.fit_rows import campaign_rows
     from labrunner.calibration.outputs import write_fit_files
     from labrunner.calibration.report import summary_markdown
-    from labrunner.data_source import step_progress
 
-    data = store.campaign_data(campaign_id)
-    data.provenance.update(step_progress(store, campaign_id))
-    provenance = {**data.provenance, "end_of_run": True}
+    # Read in chunks through a second connection: the fit keeps record summaries, not the campaign's rows.
+    data_provenance, rows = campaign_rows(store.path, campaign_id)
+    provenance = {**data_provenance, "end_of_run": True}
     defaults = FitOptions()
     options = FitOptions(poly_order=fit_cfg.polynomial_order, rbf_variants=defaults.rbf_variants if fit_cfg.rbf else (),
                          rbf_export=defaults.rbf_export if fit_cfg.rbf else "", thermal_lag_s=fit_cfg.thermal_lag)
-    result = fit_campaign(data.frame, options, provenance=provenance)
+    result = fit_campaign(rows, options, provenance=provenance)
     stored = store.find_fit(campaign_id, provenance, SAME_DATA_KEYS)
     if stored is None:
         store.save_fit(campaign_id, result.to_dict(), result.provenance)

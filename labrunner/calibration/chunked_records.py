@@ -41,21 +41,25 @@ _KEYS = ("t", "run", "orientation", "temp", "rate")
 CONTEXT_ROWS = 2  # rows before a carried segment start that its neighbours' intervals need
 
 
-def _slice(a: dict[str, Any], lo: int, hi: int) -> dict[str, Any]:
-    out: dict[str, Any] = {k: a[k][lo:hi] for k in _KEYS}
-    out["y"] = Outputs([ScaledColumn(c.counts[lo:hi], c.scale) if isinstance(c, ScaledColumn) else c[lo:hi]
+def take_rows(a: dict[str, Any], rows: slice | np.ndarray) -> dict[str, Any]:
+    """The campaign arrays of some rows (a slice: views; indices: copies), outputs kept as they are
+    held (a store's counts stay counts)."""
+    out: dict[str, Any] = {k: a[k][rows] for k in _KEYS}
+    out["y"] = Outputs([ScaledColumn(c.counts[rows], c.scale) if isinstance(c, ScaledColumn) else c[rows]
                         for c in a["y"].columns])
     return out
 
 
-def _concat(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
-    out: dict[str, Any] = {k: np.concatenate([a[k], b[k]]) for k in _KEYS}
+def join_arrays(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """The campaign arrays of consecutive parts, joined (new arrays: no part is kept alive)."""
+    out: dict[str, Any] = {k: np.concatenate([p[k] for p in parts]) for k in _KEYS}
     cols: list[np.ndarray | ScaledColumn] = []
-    for ca, cb in zip(a["y"].columns, b["y"].columns):
-        if isinstance(ca, ScaledColumn) and isinstance(cb, ScaledColumn) and ca.scale == cb.scale:
-            cols.append(ScaledColumn(np.concatenate([ca.counts, cb.counts]), ca.scale))
+    for j, first in enumerate(parts[0]["y"].columns):
+        col = [p["y"].columns[j] for p in parts]
+        if all(isinstance(c, ScaledColumn) and c.scale == first.scale for c in col):
+            cols.append(ScaledColumn(np.concatenate([c.counts for c in col]), first.scale))
         else:
-            cols.append(np.concatenate([np.asarray(ca[:]), np.asarray(cb[:])]))
+            cols.append(np.concatenate([np.asarray(c[:]) for c in col]))
     out["y"] = Outputs(cols)
     return out
 
@@ -88,7 +92,7 @@ class ChunkSegmenter:
         if n == 0:
             return
         self.n_rows += n
-        self._buf = a if self._buf is None else _concat(self._buf, a)
+        self._buf = a if self._buf is None else join_arrays([self._buf, a])
         self._close(final=False)
 
     def _close(self, final: bool) -> None:
@@ -112,7 +116,7 @@ class ChunkSegmenter:
         if end == 0:
             self.max_carry = max(self.max_carry, n)
             return
-        region = buf if end == n else _slice(buf, 0, end)
+        region = buf if end == n else take_rows(buf, slice(0, end))
         seg = starts[starts < end]
         s, e, interval = record_bounds(region, seg, self.opt, None)
         if s.size:
@@ -126,9 +130,7 @@ class ChunkSegmenter:
         if end < n:
             lo = max(end - CONTEXT_ROWS, 0)
             self._ctx = {k: buf[k][lo:end].copy() for k in _KEYS}
-            self._buf = _slice(buf, end, n)
-            # Own the carry: a view would keep the whole chunk alive.
-            self._buf = _concat(_slice(self._buf, 0, 0), self._buf)
+            self._buf = join_arrays([take_rows(buf, slice(end, n))])  # a copy: a view keeps the chunk alive
         else:
             self._buf = None
         self._g0 += end

@@ -1,9 +1,10 @@
 """Figures of static samples: the norms before and after compensation (paper Figs. 10-11) and the
 Allan deviation per channel.
 
-Both need samples, not record means: they use the rows the fit kept (`FitResult.frame`). The
-norms are drawn from a decimated subset of every static record's rows (the fit's own records:
-calibration data, not held out); the Allan deviation from the longest static records at full rate.
+Both need samples, not record means: they use the bounded set of rows the fit gathered
+(`FitResult.samples`, fit_rows.FigureRows). The norms are drawn from a decimated subset of every
+static record's rows (the fit's own records: calibration data, not held out); the Allan deviation
+from the longest static records at full rate.
 """
 
 from __future__ import annotations
@@ -11,23 +12,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pandas as pd
 from matplotlib.figure import Figure
 
-from labrunner.campaign_csv import OUTPUT_COLUMNS
-
 from .compensation import compensate
-from .evaluation import STATIC_RATE_DPS
-from .figure_style import DISPLAY, TRIAD_TITLES, FigureSkipped, colour, decimation, fmt, headline, new_figure
+from .figure_style import DISPLAY, TRIAD_TITLES, FigureSkipped, colour, fmt, headline, new_figure
 from .fit import FitResult
+from .fit_rows import FigureRows, allan_records
+from .fit_rows import static_records as _static_records
 from .headline import exported_name
 from .rbf_model import RbfModel
 from .thermal_poly import PolyModel
 from .triads import AXES, TRIAD_SLICE
-
-MAX_NORM_POINTS = 6000  # per curve: enough to show the spread, cheap to compensate and draw
-MAX_ALLAN_RECORDS = 12  # the longest static records, averaged (one short record gives a noisy curve)
-MAX_ALLAN_SAMPLES = 1 << 20  # per record: octave-spaced taus need no more
 
 
 @dataclass
@@ -42,33 +37,29 @@ class StaticSamples:
 
 def static_records(result: FitResult) -> np.ndarray:
     """Indices of the records with the table at rest."""
-    return np.flatnonzero(np.abs(result.records.rate_dps) < STATIC_RATE_DPS)
+    return _static_records(result.records)
 
 
-def _frame(result: FitResult) -> pd.DataFrame:
-    if result.frame is None:
-        raise FigureSkipped("the fit's rows are not at hand (FitResult without its frame)")
-    return result.frame
+def _samples(result: FitResult) -> FigureRows:
+    if result.samples is None:
+        raise FigureSkipped("the fit's rows are not at hand (FitResult without its figure rows)")
+    return result.samples
 
 
-def static_samples(result: FitResult, max_points: int = MAX_NORM_POINTS) -> StaticSamples:
-    frame = _frame(result)
-    recs = static_records(result)
-    if recs.size == 0:
+def static_samples(result: FitResult) -> StaticSamples:
+    """The static rows the fit gathered (every k-th, at most fit_rows.MAX_NORM_POINTS), raw and compensated."""
+    rows = _samples(result)
+    if rows.n_static_records == 0:
         raise FigureSkipped("no static records (table at rest) in the data")
-    labels = result.records.row_record
-    is_static = np.zeros(len(result.records) + 1, dtype=bool)
-    is_static[recs] = True  # index -1 (rows in no record) hits the extra last entry: False
-    rows = np.flatnonzero(is_static[labels])
-    every = decimation(rows.size, max_points)
-    rows = rows[::every]
-    y = frame[list(OUTPUT_COLUMNS)].iloc[rows].to_numpy(dtype=float)
-    temp = frame["imu_temp_c"].iloc[rows].to_numpy(dtype=float)
+    a = rows.norm
+    assert a is not None
+    y = np.asarray(a["y"], dtype=float)
+    temp = np.asarray(a["temp"], dtype=float)
     models: dict[str, PolyModel | RbfModel] = {"polynomial": result.polynomial}
     if result.rbf is not None:
         models[exported_name(result)] = result.rbf
     values = {"raw": y} | {name: compensate(m, y, temp).values for name, m in models.items()}
-    return StaticSamples(temp_c=temp, values=values, every=every, n_records=int(recs.size))
+    return StaticSamples(temp_c=temp, values=values, every=rows.every, n_records=rows.n_static_records)
 
 
 def static_norm_figure(samples: StaticSamples, triad: str) -> Figure:
@@ -122,21 +113,17 @@ class AllanCurves:
 def allan_curves(result: FitResult) -> AllanCurves:
     import allantools  # imported here: only this figure needs it
 
-    frame = _frame(result)
+    rows = _samples(result)
     recs = static_records(result)
     if recs.size == 0:
         raise FigureSkipped("no static records (table at rest) in the data")
     n = result.records.n_rows[recs]
-    longest = recs[np.argsort(-n, kind="stable")]
-    chosen = longest[result.records.n_rows[longest] >= 0.9 * n.max()][:MAX_ALLAN_RECORDS]
+    chosen = allan_records(result.records)
     if result.records.n_rows[chosen].min() < 8:
         raise FigureSkipped(f"the longest static record has {int(n.max())} samples; the Allan deviation needs 8")
-    labels = result.records.row_record
-    y_all = frame[list(OUTPUT_COLUMNS)]
     per_record: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # taus, avar (m, 6), terms (m, 6)
     for r in chosen:
-        rows = np.flatnonzero(labels == r)[:MAX_ALLAN_SAMPLES]
-        y = y_all.iloc[rows].to_numpy(dtype=float)
+        y = np.asarray(rows.allan[int(r)]["y"], dtype=float)
         rate = 1.0 / float(result.records.row_interval_s[r])
         cols = [allantools.oadev(y[:, j], rate=rate, data_type="freq", taus="octave") for j in range(6)]
         taus = np.asarray(cols[0][0], dtype=float)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -15,14 +16,18 @@ from labrunner.errors import UserError
 from labrunner.version import __version__
 
 from .branch_fit import BranchModel, BranchReport, fit_with_branches
-from .evaluation import SPLITS, SplitResult, evaluate
+from .evaluation import SPLITS, SplitResult
+from .evaluation_chunked import evaluate_chunks
+from .fit_rows import CampaignRows, FigureRows, gather_figure_rows, read_records, summary_dict
 from .gain import GainCheck, check_models
 from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_model
-from .records import RecordOptions, Records, TemperatureSteps, frame_arrays, segment_records, temperature_steps
+from .records import RecordOptions, Records, TemperatureSteps, temperature_steps
 from .six_position import StepCalibration, calibrate_steps
 from .thermal_lag_fit import LagReport, TemperatureFilter, fit_with_lag
 from .thermal_poly import PolyModel, TriadPoly, cv_order, fit_joint, fit_two_stage, max_order
 from .triads import ORIENTATIONS, TRIADS
+
+log = logging.getLogger(__name__)
 
 Progress = Callable[[str], None]
 
@@ -157,9 +162,10 @@ class FitResult:
     provenance: dict[str, Any]
     data_summary: dict[str, Any]
     timings_s: dict[str, float]
-    # The rows fitted, kept (not copied, not serialised) for the figures of static samples: the
-    # norms before and after compensation and the Allan deviation need samples, not record means.
-    frame: pd.DataFrame | None = field(default=None, repr=False)
+    # The rows the figures of static samples draw (not serialised): the norms before and after
+    # compensation and the Allan deviation need samples, not record means. A bounded set gathered at
+    # the end of the fit (fit_rows.FigureRows), not the campaign's frame.
+    samples: FigureRows | None = field(default=None, repr=False)
     # The measured gain of every model (evaluation name -> check): a model whose gain departs from the
     # fitted scale by more than gain.LIMIT is not exported.
     gains: dict[str, GainCheck] = field(default_factory=dict)
@@ -339,18 +345,33 @@ def summarize_data(frame: pd.DataFrame, records: Records, steps: TemperatureStep
     }
 
 
-def fit_campaign(frame: pd.DataFrame, options: FitOptions | None = None, provenance: dict[str, Any] | None = None,
-                 progress: Progress | None = None) -> FitResult:
-    """Fit the calibration models to a campaign frame (campaign CSV columns) and evaluate them.
+def fit_campaign(frame: pd.DataFrame | CampaignRows, options: FitOptions | None = None,
+                 provenance: dict[str, Any] | None = None, progress: Progress | None = None) -> FitResult:
+    """Fit the calibration models to a campaign (a frame of campaign CSV columns, or its rows as chunks:
+    `CampaignRows`) and evaluate them.
+
+    The fit reads the rows chunk by chunk and keeps per-record summaries; the evaluation and the
+    figures gather the rows they score or draw in further passes (docs/calibration.md, "Memory").
+    `thermal_lag_s` and `branch_fit` filter the whole temperature series: with either, the campaign is
+    read into one frame first.
 
     Raises `UserError` when the data holds nothing that can be fitted; otherwise fits
     what it can and lists the rest in `FitResult.not_fitted`.
     """
     opt = options or FitOptions()
+    rows = frame if isinstance(frame, CampaignRows) else CampaignRows.of_frame(frame)
     with analysis_threads():
-        if opt.branch_fit:
-            return fit_with_branches(frame, opt, provenance, progress, _fit_inner)
-        return _fit_inner(frame, opt, provenance, progress)
+        if opt.branch_fit or opt.thermal_lag_s is not None:
+            if rows.frame is None:
+                log.info("thermal_lag_s / branch_fit filter the whole temperature series: the campaign is read "
+                         "into one frame")
+                if progress:
+                    progress("reading the whole campaign (thermal_lag_s / branch_fit work on the whole series)")
+            whole = rows.whole()
+            if opt.branch_fit:
+                return fit_with_branches(whole, opt, provenance, progress, _fit_inner)
+            return _fit_inner(whole, opt, provenance, progress)
+        return _fit_campaign(rows, opt, provenance, progress)
 
 
 def _fit_inner(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str, Any] | None,
@@ -361,16 +382,21 @@ def _fit_inner(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str, Any] 
     return _fit_campaign(frame, opt, provenance, progress)
 
 
-def _fit_campaign(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str, Any] | None,
+def _fit_campaign(data: pd.DataFrame | CampaignRows, opt: FitOptions, provenance: dict[str, Any] | None,
                   progress: Progress | None) -> FitResult:
+    rows = data if isinstance(data, CampaignRows) else CampaignRows.of_frame(data)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if progress:
-        progress(f"segmenting {len(frame):,} rows into records")
-    records = segment_records(frame, opt.records)
+        progress("segmenting the rows into records" if rows.frame is None
+                 else f"segmenting {len(rows.frame):,} rows into records")
+    records, summary = read_records(rows, opt.records, progress)
     if len(records) == 0:
         raise UserError("no stable records in the data: every stretch is shorter than "
                         f"{opt.records.min_duration_s:g} s or drifts in temperature or rate")
+    if rows.frame is not None:
+        # The whole frame is at hand: the row-level fits (thermal lag, branches) look its rows up by record.
+        records.row_record = records.labels(len(rows.frame))
     timings["records"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     try:
@@ -384,18 +410,18 @@ def _fit_campaign(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str, An
     evaluation: list[SplitResult] = []
     if opt.evaluate:
         t2 = time.perf_counter()
-        a = frame_arrays(frame)
 
         def refit(train: Records) -> dict[str, PolyModel | RbfModel]:
             return fit_models(train, opt).compensators()
 
-        evaluation = evaluate(a, records, models.steps, refit, opt.splits, opt.holdout_fraction, opt.eval_max_rows,
-                              opt.seed, progress)
+        evaluation = evaluate_chunks(rows.chunks, summary.rows, records, models.steps, refit, opt.splits,
+                                     opt.holdout_fraction, opt.eval_max_rows, opt.seed, progress)
         timings["evaluation"] = time.perf_counter() - t2
+    samples = gather_figure_rows(rows, records)
     prov = dict(provenance or {})
-    prov.setdefault("rows", int(len(frame)))
+    prov.setdefault("rows", summary.rows)
     prov["software"] = {"name": "labrunner", "version": __version__}
     prov["fitted_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     return FitResult(options=opt, models=models, records=records, evaluation=evaluation, provenance=prov,
-                     data_summary=summarize_data(frame, records, models.steps), timings_s=timings,
-                     frame=frame, gains=gains)
+                     data_summary=summary_dict(summary, records, models.steps), timings_s=timings,
+                     samples=samples, gains=gains)

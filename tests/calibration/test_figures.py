@@ -127,7 +127,7 @@ def test_allan_deviation_of_white_noise_falls_with_slope_minus_half(result):
 
 def test_figures_the_data_cannot_support_are_skipped_with_a_reason(campaign, tmp_path):
     no_eval = fit_campaign(campaign, FitOptions(evaluate=False, rbf_variants=("hybrid",)))
-    no_eval.frame = None  # a FitResult built without its rows
+    no_eval.samples = None  # a FitResult built without its figure rows
     report = write_figures(no_eval, tmp_path)
     assert "thermal_accel_bias.png" in report.written
     assert report.skipped["heldout_error_accel.png"] == "no evaluation ran (--no-eval)"

@@ -1,0 +1,103 @@
+"""The evaluation of a campaign read in chunks equals `evaluate` of the whole frame, split by split and
+number by number (issue 15): the same held-out draws, training records, PX4 reference, scored rows
+and INS windows, with chunks small enough that records, draws and windows cross many cuts.
+
+The campaign has four table rates, runs longer than three one-hour blocks (every split runs) and
+more held-out and training rows than the limits, which are set low so that the row subsets are drawn.
+"""
+
+from __future__ import annotations
+
+import json
+from importlib.resources import files
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import labrunner
+from labrunner.calibration import evaluation as ev
+from labrunner.calibration.chunked_records import frame_chunks, segment_chunks
+from labrunner.calibration.evaluation_chunked import evaluate_chunks
+from labrunner.calibration.fit import FitOptions, fit_campaign, fit_models, json_clean
+from labrunner.calibration.fit_rows import campaign_rows
+from labrunner.calibration.records import Records, frame_arrays, segment_records
+from labrunner.data_source import load_campaign_data
+from labrunner.domain import OUTPUT_COLUMNS
+from labrunner.procedure import triangular_rates
+
+from calib_campaigns import make_campaign
+
+OPTIONS = FitOptions(eval_max_rows=5000, rbf_variants=(), rbf_export="")
+
+
+@pytest.fixture(scope="module")
+def campaign() -> pd.DataFrame:
+    return make_campaign(seed=4, record_s=300.0, rates_dps=triangular_rates(100.0, 25.0), average_s=1.0)
+
+
+def _dicts(results: list[ev.SplitResult]) -> list[str]:
+    return [json.dumps(json_clean(r.to_dict()), sort_keys=True) for r in results]
+
+
+def _whole(frame: pd.DataFrame, opt: FitOptions) -> tuple[Records, list[ev.SplitResult]]:
+    records = segment_records(frame, opt.records)
+    steps = fit_models(records, opt).steps
+    return records, ev.evaluate(frame_arrays(frame), records, steps, lambda tr: fit_models(tr, opt).compensators(),
+                                opt.splits, opt.holdout_fraction, opt.eval_max_rows, opt.seed)
+
+
+def test_every_split_equals_the_whole_frame_evaluation(campaign: pd.DataFrame, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ev, "OFFSET_MAX_ROWS", 3000)  # the per-run offsets drawn from the training rows
+    _, whole = _whole(campaign, OPTIONS)
+    assert [r.skipped for r in whole] == [None] * 5
+    assert all(r.n_test_rows == OPTIONS.eval_max_rows for r in whole)
+    assert sum(bool(r.ins) for r in whole) >= 2  # the INS windows are compared too
+    records = segment_chunks(frame_chunks(campaign, 4099), OPTIONS.records)
+    assert records.row_record.size == 0  # nothing per row of the campaign
+    steps = fit_models(records, OPTIONS).steps
+    chunked = evaluate_chunks(lambda: frame_chunks(campaign, 4099), len(campaign), records, steps,
+                              lambda tr: fit_models(tr, OPTIONS).compensators(), OPTIONS.splits,
+                              OPTIONS.holdout_fraction, OPTIONS.eval_max_rows, OPTIONS.seed)
+    assert _dicts(chunked) == _dicts(whole)
+
+
+def test_a_store_fitted_in_chunks_equals_its_whole_frame(tmp_path: Path) -> None:
+    """The quick campaign's store read a block at a time: records, models, evaluation, gains and the
+    figures' rows as the fit of the loaded frame has them."""
+    db = tmp_path / "quick.db"
+    assert labrunner.run(files("labrunner.procedures") / "quick.yaml", db=db, seed=1).state == "done"
+    data = load_campaign_data(db)
+    opt = FitOptions()
+    whole = fit_campaign(data.frame, opt, provenance=data.provenance)
+    prov, rows = campaign_rows(db, max_rows=1)
+    assert prov == data.provenance
+    assert len(list(rows.chunks())) > 20
+    chunked = fit_campaign(rows, opt, provenance=prov)
+    a, b = whole.to_dict(), chunked.to_dict()
+    for d in (a, b):
+        d.pop("timings_s")
+        d["provenance"].pop("fitted_at")
+    assert a == b
+    # ... and as the whole-frame code computes them: segment_records, evaluate.
+    ref_records, ref_eval = _whole(data.frame, opt)
+    assert _dicts(chunked.evaluation) == _dicts(ref_eval)
+    for f in ("mean", "sem", "temp_c", "n_rows", "row_start", "row_stop", "run", "orientation", "rate_dps"):
+        np.testing.assert_array_equal(getattr(chunked.records, f), getattr(ref_records, f))
+    assert chunked.records.row_record.size == 0 and whole.records.row_record.size == len(data.frame)
+    # The figures' rows: every k-th row of the static records, the first rows of the longest ones.
+    static = np.abs(ref_records.rate_dps) < ev.STATIC_RATE_DPS
+    rows = np.flatnonzero(np.append(static, False)[ref_records.row_record])
+    every = max(1, -(-rows.size // 6000))
+    y = data.frame[list(OUTPUT_COLUMNS)]
+    sw, sc = whole.samples, chunked.samples
+    assert sw is not None and sc is not None and sc.norm is not None and sw.norm is not None
+    np.testing.assert_array_equal(np.asarray(sc.norm["y"]), np.asarray(sw.norm["y"]))
+    np.testing.assert_array_equal(np.asarray(sc.norm["y"]), y.iloc[rows[::every]].to_numpy(dtype=float))
+    assert sc.every == every
+    assert sorted(sc.allan) == sorted(sw.allan) and sc.allan
+    for r in sc.allan:
+        np.testing.assert_array_equal(np.asarray(sc.allan[r]["y"]), np.asarray(sw.allan[r]["y"]))
+        np.testing.assert_array_equal(np.asarray(sc.allan[r]["y"]),
+                                      y.iloc[np.flatnonzero(ref_records.row_record == r)].to_numpy(dtype=float))
