@@ -1042,6 +1042,7 @@ class Store:
     def _renew(self, conn: Connection, campaign_id: int, now: float, **also: Any) -> None:
         """Inside a write of a held campaign: renew the lease, or raise `LeaseLost` (the write rolls back).
         `also`: other columns of the campaign row to set (in the same statement when a lease is held)."""
+        self._not_lost(campaign_id)  # a lease lost once stays lost: no write without it taken again
         token = self.leases.get(campaign_id)
         if token is None:  # a writer without a lease (tests driving a runner directly, labrunner abort)
             if also:
