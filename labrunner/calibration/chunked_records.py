@@ -41,10 +41,10 @@ _KEYS = ("t", "run", "orientation", "temp", "rate")
 CONTEXT_ROWS = 2  # rows before a carried segment start that its neighbours' intervals need
 
 
-def take_rows(a: dict[str, Any], rows: slice | np.ndarray) -> dict[str, Any]:
-    """The campaign arrays of some rows (a slice: views; indices: copies), outputs kept as they are
-    held (a store's counts stay counts)."""
-    out: dict[str, Any] = {k: a[k][rows] for k in _KEYS}
+def take_rows(a: dict[str, Any], rows: slice | np.ndarray, keys: tuple[str, ...] = _KEYS) -> dict[str, Any]:
+    """The campaign arrays `keys` and the outputs of some rows (a slice: views; indices: copies), outputs
+    kept as they are held (a store's counts stay counts)."""
+    out: dict[str, Any] = {k: a[k][rows] for k in keys}
     out["y"] = Outputs([ScaledColumn(c.counts[rows], c.scale) if isinstance(c, ScaledColumn) else c[rows]
                         for c in a["y"].columns])
     return out
@@ -52,7 +52,7 @@ def take_rows(a: dict[str, Any], rows: slice | np.ndarray) -> dict[str, Any]:
 
 def join_arrays(parts: list[dict[str, Any]]) -> dict[str, Any]:
     """The campaign arrays of consecutive parts, joined (new arrays: no part is kept alive)."""
-    out: dict[str, Any] = {k: np.concatenate([p[k] for p in parts]) for k in _KEYS}
+    out: dict[str, Any] = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "y"}
     cols: list[np.ndarray | ScaledColumn] = []
     for j, first in enumerate(parts[0]["y"].columns):
         col = [p["y"].columns[j] for p in parts]

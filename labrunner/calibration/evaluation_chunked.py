@@ -97,11 +97,15 @@ def _positions(pop: int, max_rows: int, rng: np.random.Generator) -> np.ndarray 
     return None
 
 
-class _Gather:
-    """Rows picked by rank among the rows of a mask, met chunk by chunk in order."""
+PX4_KEYS = ("orientation", "temp", "rate")  # what fit_px4 reads of a row besides its outputs
 
-    def __init__(self, ranks: np.ndarray | None) -> None:
+
+class _Gather:
+    """Rows picked by rank among the rows of a mask, met chunk by chunk in order (`keys` and outputs)."""
+
+    def __init__(self, ranks: np.ndarray | None, keys: tuple[str, ...] = _KEYS) -> None:
         self.ranks = ranks
+        self.keys = keys
         self.seen = 0
         self.parts: list[dict[str, Any]] = []
         self.labels: list[np.ndarray] = []
@@ -113,7 +117,7 @@ class _Gather:
             self.seen += idx.size
             idx = idx[self.ranks[lo:hi] - (self.seen - idx.size)]
         if idx.size:
-            self.parts.append(take_rows(a, idx))
+            self.parts.append(take_rows(a, idx, self.keys))
             self.labels.append(lab[idx])
 
     def arrays(self) -> tuple[dict[str, Any] | None, np.ndarray]:
@@ -206,7 +210,7 @@ def _random_split(source: RowSource, n_rows: int, records: Records, fit_models: 
                   max_rows: int, rng: np.random.Generator, res: SplitResult) -> None:
     state = rng.bit_generator.state  # the draw replayed in the second pass
     parts: list[Records] = []
-    static_train = _Gather(None)
+    static_train = _Gather(None, PX4_KEYS)
     n_test = 0
     drawn = 0
     for g0, a in aligned_chunks(source, records):
@@ -253,7 +257,7 @@ def _record_split(source: RowSource, records: Records, test_rec: np.ndarray, fit
     n = records.n_rows.astype(np.int64)
     offset_rows = _Gather(_positions(int(n[~test_rec].sum()), _evaluation.OFFSET_MAX_ROWS, rng)) if offsets else None
     test_rows = _Gather(_positions(int(n[test_rec].sum()), max_rows, rng))
-    static_train = _Gather(None)
+    static_train = _Gather(None, PX4_KEYS)
     static_test: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # campaign position, t, record
     flag = np.append(test_rec, False)  # index -1 (rows in no record): neither part
     train_flag = np.append(~test_rec, False)

@@ -101,3 +101,19 @@ def test_a_store_fitted_in_chunks_equals_its_whole_frame(tmp_path: Path) -> None
         np.testing.assert_array_equal(np.asarray(sc.allan[r]["y"]), np.asarray(sw.allan[r]["y"]))
         np.testing.assert_array_equal(np.asarray(sc.allan[r]["y"]),
                                       y.iloc[np.flatnonzero(ref_records.row_record == r)].to_numpy(dtype=float))
+
+
+def test_a_field_log_with_px4_fitted_equals_the_whole_frame_evaluation() -> None:
+    """A static 1 Hz log of slow ramps (no soaks): PX4's reference is fitted on every split's static
+    training rows, gathered chunk by chunk; time_blocks runs with its per-run offsets."""
+    from field_logs import field_log
+
+    frame, _ = field_log(seed=1, hours_per_run=4.0)
+    _, whole = _whole(frame, OPTIONS)
+    assert any("px4" in r.samples for r in whole)
+    records = segment_chunks(frame_chunks(frame, 3001), OPTIONS.records)
+    steps = fit_models(records, OPTIONS).steps
+    chunked = evaluate_chunks(lambda: frame_chunks(frame, 3001), len(frame), records, steps,
+                              lambda tr: fit_models(tr, OPTIONS).compensators(), OPTIONS.splits,
+                              OPTIONS.holdout_fraction, OPTIONS.eval_max_rows, OPTIONS.seed)
+    assert _dicts(chunked) == _dicts(whole)
