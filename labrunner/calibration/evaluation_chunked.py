@@ -10,7 +10,9 @@ no record straddles a cut (`aligned_chunks`), and keeps only what its scores nee
   sums);
 * the held-out rows scored are drawn as `_limit_rows` draws them (`rng.choice` over the population's
   size gives the positions `rng.choice` over the row indices gives: the same generator calls in the
-  same order), and only those rows (at most `max_rows`) are gathered;
+  same order), and only those rows (at most `max_rows`) are gathered; beyond CHOICE_MAX_POP rows
+  (8 M: 2.3x the paper campaign's largest held-out part) a blocked draw in bounded memory, uniform
+  as well but of other rows;
 * PX4's reference is fitted on the static training rows, gathered (their outputs as the store's
   counts): PX4's median filter and sweep run over each orientation's whole static log;
 * the INS test takes the times and records of the static held-out rows to choose its windows
@@ -90,11 +92,32 @@ def _labels(records: Records, g0: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     return lab, np.arange(lo, hi)
 
 
+# Above this many rows, `rng.choice(pop, size)` would shuffle an (pop,) int64 array (numpy's tail shuffle,
+# used whenever size > pop / 50): 8 bytes per held-out row. Up to it (every split of the paper campaign,
+# 2.4-3.5 M) the draw is `_limit_rows`'s; beyond it, `_blocked_choice` draws an equally uniform subset in
+# blocks: other rows than the whole-frame code would draw, in bounded memory.
+CHOICE_MAX_POP = 1 << 23
+CHOICE_BLOCK = 1 << 21
+
+
 def _positions(pop: int, max_rows: int, rng: np.random.Generator) -> np.ndarray | None:
     """`evaluation._limit_rows` as ranks among the population's rows (None: all of them)."""
-    if pop > max_rows:
+    if pop <= max_rows:
+        return None
+    if pop <= CHOICE_MAX_POP:
         return np.sort(rng.choice(pop, size=max_rows, replace=False))
-    return None
+    return _blocked_choice(pop, max_rows, rng)
+
+
+def _blocked_choice(pop: int, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Sorted `size` distinct ranks of `pop`, uniform over the subsets of that size: how many fall in each
+    block of CHOICE_BLOCK ranks is one multivariate hypergeometric draw, then a choice within each block."""
+    blocks = np.full(-(-pop // CHOICE_BLOCK), CHOICE_BLOCK, dtype=np.int64)
+    blocks[-1] = pop - CHOICE_BLOCK * (blocks.size - 1)
+    counts = rng.multivariate_hypergeometric(blocks, size, method="marginals")
+    parts = [b * CHOICE_BLOCK + np.sort(rng.choice(int(blocks[b]), size=int(k), replace=False))
+             for b, k in enumerate(counts.tolist()) if k]
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
 
 
 PX4_KEYS = ("orientation", "temp", "rate")  # what fit_px4 reads of a row besides its outputs

@@ -117,3 +117,31 @@ def test_a_field_log_with_px4_fitted_equals_the_whole_frame_evaluation() -> None
                               lambda tr: fit_models(tr, OPTIONS).compensators(), OPTIONS.splits,
                               OPTIONS.holdout_fraction, OPTIONS.eval_max_rows, OPTIONS.seed)
     assert _dicts(chunked) == _dicts(whole)
+
+
+def test_a_blocked_draw_beyond_the_shuffle_bound_is_distinct_sorted_and_uniform() -> None:
+    from labrunner.calibration.evaluation_chunked import CHOICE_BLOCK, _blocked_choice
+
+    rng = np.random.default_rng(3)
+    pop, size = 5 * CHOICE_BLOCK + 12345, 400_000
+    x = _blocked_choice(pop, size, rng)
+    assert x.size == size and np.all(np.diff(x) > 0) and x[0] >= 0 and x[-1] < pop
+    # Each block holds its share of the subset within a few standard deviations (hypergeometric).
+    share = np.bincount(x // CHOICE_BLOCK) / size
+    expected = np.append(np.full(5, CHOICE_BLOCK), 12345) / pop
+    assert np.all(np.abs(share - expected) < 5 * np.sqrt(expected / size) + 1e-9)
+
+
+def test_beyond_the_shuffle_bound_every_split_still_scores_its_limit(campaign: pd.DataFrame,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    from labrunner.calibration import evaluation_chunked as ec
+
+    monkeypatch.setattr(ec, "CHOICE_MAX_POP", 6000)
+    monkeypatch.setattr(ec, "CHOICE_BLOCK", 1000)
+    records = segment_chunks(frame_chunks(campaign, 4099), OPTIONS.records)
+    steps = fit_models(records, OPTIONS).steps
+    out = evaluate_chunks(lambda: frame_chunks(campaign, 4099), len(campaign), records, steps,
+                          lambda tr: fit_models(tr, OPTIONS).compensators(), OPTIONS.splits,
+                          OPTIONS.holdout_fraction, OPTIONS.eval_max_rows, OPTIONS.seed)
+    assert [r.n_test_rows for r in out] == [OPTIONS.eval_max_rows] * 5
+    assert all(np.isfinite(r.samples["polynomial"].rms).all() for r in out)
