@@ -3,22 +3,24 @@
     python bench/bench_load.py --data paper.db          # a recorded store (default: /tmp/paper/paper.db)
     python bench/bench_load.py --data paper.db --csv-rows 2000000 --repeat 3
 
-Store: `load_campaign_data(DB)` (what `labrunner fit` reads: samples with the IMU channels kept as
-int16 counts, validation, steps, events, power-on marks) against the floor of the same read: the SQL
-fetch of the record blobs and the columns the fit reads built from them in their stored types (the
-int16 counts of each channel; the float64 time axis from the counters; the table rate per row from
-its readings; run and orientation per row), no frame, no validation. The bare fetch (`np.frombuffer`
-views of every blob, nothing copied) is printed too. The store ratio is of CPU time (user + sys of
-this process: the waits of a busy machine are not the reader's cost); wall times are printed beside
-it. CSV: the store's first `--csv-rows` rows written as a campaign CSV in a temporary directory,
-`read_campaign(CSV)` against `pandas.read_csv` of the same file (wall time). Runs alternate (floor,
-ours, floor, ours, ...) so both see the same load; medians are compared. Limit: 2.0 for both. The
-temporary directory is removed at the end.
+Store: `load_campaign_data(DB)` (what `labrunner fit` reads: the open's damage check, samples with the IMU
+channels kept as int16 counts and the chamber column, validation, steps, events, power-on marks) against
+the floor of the same read: the SQL fetch of the record blobs and the columns the fit reads built from
+them in their stored types (the int16 counts of each channel; the float64 time axis from the counters;
+the table rate per row from its readings; run and orientation per row), no frame, no validation, no
+chamber column. The bare fetch (`np.frombuffer` views of every blob, nothing copied) is printed too.
+The store ratio is of CPU time (user + sys of this process: the waits of a busy machine are not the
+reader's cost); the sys part (the kernel's page faults for fresh memory, which a busy machine varies
+most) and wall times are printed beside it. CSV: the store's first `--csv-rows` rows written as a
+campaign CSV in a temporary directory, `read_campaign(CSV)` against `pandas.read_csv` of the same file
+(wall time). Runs alternate (floor, ours, floor, ours, ...) so both see the same load; medians are
+compared. Limit: 2.0 for both. The temporary directory is removed at the end.
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import shutil
 import sqlite3
 import statistics
@@ -98,21 +100,27 @@ def column_floor(db: Path, campaign_id: int) -> int:
 @dataclass(frozen=True)
 class Times:
     wall_s: float
-    cpu_s: float
+    cpu_s: float  # user + sys
+    sys_s: float  # of which the kernel's (page faults of fresh memory, file reads): the part a busy machine varies most
 
     def __str__(self) -> str:
-        return f"{self.cpu_s:.2f} s CPU ({self.wall_s:.2f} s wall)"
+        return f"{self.cpu_s:.2f} s CPU ({self.sys_s:.2f} s of it sys; {self.wall_s:.2f} s wall)"
+
+
+def _clock() -> tuple[float, float, float]:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return time.perf_counter(), usage.ru_utime + usage.ru_stime, usage.ru_stime
 
 
 def paired(a: Callable[[], object], b: Callable[[], object], repeat: int) -> tuple[Times, Times]:
-    """Median wall and CPU times of a and b, run alternately."""
-    runs: tuple[list[tuple[float, float]], list[tuple[float, float]]] = ([], [])
+    """Median wall, CPU and sys times of a and b, run alternately."""
+    runs: tuple[list[tuple[float, ...]], list[tuple[float, ...]]] = ([], [])
     for _ in range(repeat):
         for f, out in zip((a, b), runs):
-            w, c = time.perf_counter(), time.process_time()
+            start = _clock()
             f()
-            out.append((time.perf_counter() - w, time.process_time() - c))
-    ta, tb = (Times(statistics.median(x[0] for x in out), statistics.median(x[1] for x in out)) for out in runs)
+            out.append(tuple(e - s for e, s in zip(_clock(), start)))
+    ta, tb = (Times(*(statistics.median(x[k] for x in out) for k in range(3))) for out in runs)
     return ta, tb
 
 
@@ -141,7 +149,7 @@ def _bench(args: argparse.Namespace) -> int:
     n = raw_blob_read(db, cid)
     print(f"store {db}: campaign {cid}, {n:,} samples")
     del data
-    t_bare, _ = paired(lambda: raw_blob_read(db, cid), lambda: None, 1)
+    t_bare, _ = paired(lambda: raw_blob_read(db, cid), lambda: None, args.repeat)
     t_floor, t_ours = paired(lambda: column_floor(db, cid), lambda: load_campaign_data(db), args.repeat)
     print(f"store: blob fetch alone {t_bare}; floor (fetch + the fit's columns in their stored types) {t_floor}; "
           f"load_campaign_data {t_ours}")

@@ -11,7 +11,7 @@ import csv
 import io
 import logging
 import os
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -129,14 +129,14 @@ def _validate(raw: pd.DataFrame, label: str, from_csv: bool, *, first_row: int =
         else:
             arr = pd.to_numeric(series, errors="coerce").to_numpy(dtype=float)
         if col in REQUIRED_NUMERIC:
-            nan = ~np.isfinite(arr)
-            if nan.any():
-                i = int(np.flatnonzero(nan)[0])
+            at = _first_where(arr, lambda a: ~np.isfinite(a))
+            if at is not None:
                 raise CampaignDataError(label, "value missing or not finite (NaN/inf)",
-                                        _line(first_row + i, from_csv), col)
-        elif np.isinf(arr).any():
-            i = int(np.flatnonzero(np.isinf(arr))[0])
-            raise CampaignDataError(label, "value is infinite", _line(first_row + i, from_csv), col)
+                                        _line(first_row + at, from_csv), col)
+        else:
+            at = _first_where(arr, np.isinf)
+            if at is not None:
+                raise CampaignDataError(label, "value is infinite", _line(first_row + at, from_csv), col)
         out[col] = arr
 
     series = raw["run"]
@@ -174,6 +174,16 @@ def _validate(raw: pd.DataFrame, label: str, from_csv: bool, *, first_row: int =
         out[POWER_ON] = _power_on(raw[POWER_ON], label, from_csv, first_row)
         columns.append(POWER_ON)
     return pd.DataFrame({c: out[c] for c in columns}, copy=False)
+
+
+def _first_where(values: np.ndarray, bad: Callable[[np.ndarray], np.ndarray], chunk: int = 1 << 20) -> int | None:
+    """The first row where `bad` holds, or None; a chunk at a time (no full-length temporaries: a
+    campaign's 12 M rows would take fresh pages for every mask)."""
+    for lo in range(0, values.size, chunk):
+        hits = np.flatnonzero(bad(values[lo:lo + chunk]))
+        if hits.size:
+            return lo + int(hits[0])
+    return None
 
 
 def _backwards(t: np.ndarray, run: np.ndarray, chunk: int = 1 << 20) -> int | None:

@@ -98,7 +98,7 @@ class PowerOnMarks:
         run = frame["run"].to_numpy()
         # The first row of each run: where the run changes, when no run comes back later (a store's rows
         # are in time order); else by hashing every row's run.
-        change = np.flatnonzero(np.concatenate(([True], run[1:] != run[:-1]))) if run.size else np.zeros(0, int)
+        change = _run_starts(run)
         if np.unique(run[change]).size == change.size:
             at = change
         else:
@@ -167,6 +167,18 @@ def _store_chunks(store: Any, cid: int, marks: PowerOnMarks, *, max_rows: int, i
             yield chunk
     finally:
         store.close()
+
+
+def _run_starts(run: np.ndarray, chunk: int = 1 << 20) -> np.ndarray:
+    """The rows where the run differs from the row before (and row 0), a chunk at a time (no
+    full-length masks)."""
+    if not run.size:
+        return np.zeros(0, dtype=np.intp)
+    parts = [np.zeros(1, dtype=np.intp)]
+    for lo in range(1, run.size, chunk):
+        hi = min(lo + chunk, run.size)
+        parts.append(lo + np.flatnonzero(run[lo:hi] != run[lo - 1:hi - 1]))
+    return np.concatenate(parts)
 
 
 def mark_power_ons(frame: pd.DataFrame, events: pd.DataFrame) -> pd.DataFrame:

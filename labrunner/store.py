@@ -313,10 +313,11 @@ def _checked_row(row: Any, path: StoreAddress) -> tuple[float, float, float] | N
             raise damaged(f"column {column} is not (time, value) float64 pairs")
     if enc != "i16":
         return None
-    lsb = (row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"])
-    if not all(isinstance(v, float) and v > 0 for v in lsb):
+    la, lg, lt = row["accel_lsb"], row["gyro_lsb"], row["temp_lsb"]
+    if not (isinstance(la, float) and la > 0 and isinstance(lg, float) and lg > 0 and isinstance(lt, float)
+            and lt > 0):
         raise damaged("int16 samples without their LSB sizes")
-    return lsb
+    return (la, lg, lt)
 
 
 def _block_from_row(row: Any, path: StoreAddress) -> SampleBlock:
@@ -1262,7 +1263,10 @@ class Store:
                                          sample_blocks.c.kind.in_(list(kinds)))
              .order_by(sample_blocks.c.t0_s, sample_blocks.c.id))
         with self.reading() as conn:
-            yield from conn.execute(q).mappings()
+            result = conn.execute(q)
+            keys = list(result.keys())
+            for values in result:  # as dicts: ~35 lookups a block, cheaper than a RowMapping's
+                yield dict(zip(keys, values))
 
     def _one_lsb(self, campaign_id: int, kinds: Sequence[str]) -> tuple[float, float, float] | None:
         """The LSB sizes (accel, gyro, temp) when every block of these kinds holds int16 counts of the
