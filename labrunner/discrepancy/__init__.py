@@ -6,29 +6,18 @@ names the causes the data supports (and the ones it cannot tell apart), builds t
 extended `ImuModel`, and measures the held-out gain. `labrunner diagnose` is the CLI.
 """
 
-from __future__ import annotations
+from .diagnose import DiagnoseOptions, Diagnosis, Finding, Gain, diagnose
+from .extend import check_model
+from .measurements import Measurements
+from .terms import CAUSE_ORDER
 
-import importlib
-from typing import Any
-
-# Exported lazily (PEP 562): the calibration imports `discrepancy.measurements` and
-# `discrepancy.temperature` for their estimators, which should not load the whole diagnosis.
-_EXPORTS = {
-    "CAUSE_ORDER": "terms",
-    "DiagnoseOptions": "diagnose",
-    "Diagnosis": "diagnose",
-    "Finding": "diagnose",
-    "Gain": "diagnose",
-    "Measurements": "measurements",
-    "check_model": "extend",
-    "diagnose": "diagnose",
-}
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
-    globals()[name] = value
-    return value
+__all__ = [
+           "CAUSE_ORDER",
+           "DiagnoseOptions",
+           "Diagnosis",
+           "Finding",
+           "Gain",
+           "Measurements",
+           "check_model",
+           "diagnose",
+]
