@@ -34,7 +34,6 @@ import pandas as pd
 
 from . import evaluation as _evaluation
 from .chunked_records import _KEYS, concat_records, join_arrays, take_rows
-from .compensation import Compensated
 from .evaluation import (
     _DESCRIPTIONS,
     SPLITS,
@@ -120,6 +119,7 @@ def _blocked_choice(pop: int, size: int, rng: np.random.Generator) -> np.ndarray
     return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
 
 
+INS_CHUNK = 1 << 19  # INS rows compensated at once
 PX4_KEYS = ("orientation", "temp", "rate")  # what fit_px4 reads of a row besides its outputs
 
 
@@ -340,8 +340,18 @@ def _ins(models: Mapping[str, Scored], source: RowSource, records: Records, pos:
         if hi > lo:
             parts.append(take_rows(a, want[lo:hi] - g0))
     rows_a = join_arrays(parts)
+    del parts
     local = np.searchsorted(want, win)
     sub = _take(rows_a, local.ravel())
-    done: dict[int, Compensated] = {}
-    outputs = {name: _apply(model, sub, done=done)[0] for name, model in {"raw": None, **models}.items()}
-    res.ins = ins_errors(rows_a, local, outputs)
+    n = int(local.size)
+    # One model's outputs at a time, computed INS_CHUNK rows at a time: up to MAX_WINDOWS minutes of rows
+    # (1.2 M at 50 Hz) would otherwise be compensated at once for every model. Each model's errors are its
+    # own; compensation is row by row, so up to INS_CHUNK rows (the paper campaign: 288 000) the numbers
+    # are the whole-frame code's bit for bit.
+    res.ins = {}
+    for name, model in {"raw": None, **models}.items():
+        values = np.concatenate([
+            _apply(model, {k: v[lo:lo + INS_CHUNK] for k, v in sub.items()}, done={})[0]
+            for lo in range(0, n, INS_CHUNK)])
+        res.ins.update(ins_errors(rows_a, local, {name: values}))
+        del values
