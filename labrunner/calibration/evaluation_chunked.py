@@ -342,8 +342,8 @@ def _ins(models: Mapping[str, Scored], source: RowSource, records: Records, pos:
     rows_a = join_arrays(parts)
     del parts
     local = np.searchsorted(want, win)
-    sub = _take(rows_a, local.ravel())
-    n = int(local.size)
+    flat = local.ravel()
+    n = int(flat.size)
     # One model's outputs at a time, computed INS_CHUNK rows at a time: up to MAX_WINDOWS minutes of rows
     # (1.2 M at 50 Hz) would otherwise be compensated at once for every model. Each model's errors are its
     # own; compensation is row by row, so up to INS_CHUNK rows (the paper campaign: 288 000) the numbers
@@ -351,7 +351,7 @@ def _ins(models: Mapping[str, Scored], source: RowSource, records: Records, pos:
     res.ins = {}
     for name, model in {"raw": None, **models}.items():
         values = np.concatenate([
-            _apply(model, {k: v[lo:lo + INS_CHUNK] for k, v in sub.items()}, done={})[0]
+            _apply(model, _take(rows_a, flat[lo:lo + INS_CHUNK]), done={})[0]
             for lo in range(0, n, INS_CHUNK)])
         res.ins.update(ins_errors(rows_a, local, {name: values}))
         del values
