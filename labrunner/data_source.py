@@ -112,7 +112,7 @@ class PowerOnMarks:
 
 
 def campaign_chunks(path: str | Path | StoreAddress, campaign: int | None = None, *, max_rows: int = 1 << 20,
-                    include_monitor: bool = False, min_gap_s: float | None = None
+                    include_monitor: bool = False, min_gap_s: float | None = None, rows: int | None = None
                     ) -> tuple[dict[str, Any], Iterator[pd.DataFrame]]:
     """`load_campaign_data(path, campaign, include_monitor=...)` a bounded number of rows at a time: its
     provenance (the same dict, known before any sample is read: rows and time range from the block
@@ -122,6 +122,8 @@ def campaign_chunks(path: str | Path | StoreAddress, campaign: int | None = None
     From a store, chunks are `Store.frames` chunks (whole blocks, `max_rows` and `min_gap_s` as
     there), each validated by `read_campaign_chunk` (the whole read's checks and messages, rows named
     by their place in the campaign); the store stays open until the iterator is exhausted or closed.
+    `rows` (a store's `provenance["rows"]` from an earlier call) pins the samples read to the first
+    `rows`, so that every pass of a fit sees one campaign while it is still being recorded.
     A campaign CSV is read whole and comes as one chunk."""
     if not (isinstance(path, StoreAddress) or is_url(path)):
         p = Path(path)
@@ -136,7 +138,8 @@ def campaign_chunks(path: str | Path | StoreAddress, campaign: int | None = None
         cid = store.resolve(campaign)
         info = store.campaign(cid)
         kinds = ("record", "monitor") if include_monitor else ("record",)
-        rows = store.sample_count(cid, kinds)
+        counted = store.sample_count(cid, kinds)
+        rows = counted if rows is None else min(rows, counted)
         if rows == 0:
             raise UserError(f"{store.path}: campaign {cid} has no recorded samples yet")
         provenance: dict[str, Any] = {
@@ -150,17 +153,18 @@ def campaign_chunks(path: str | Path | StoreAddress, campaign: int | None = None
         store.close()
         raise
     return provenance, _store_chunks(store, cid, marks, max_rows=max_rows, include_monitor=include_monitor,
-                                     min_gap_s=min_gap_s)
+                                     min_gap_s=min_gap_s, rows=rows)
 
 
 def _store_chunks(store: Any, cid: int, marks: PowerOnMarks, *, max_rows: int, include_monitor: bool,
-                  min_gap_s: float | None) -> Iterator[pd.DataFrame]:
+                  min_gap_s: float | None, rows: int) -> Iterator[pd.DataFrame]:
     from labrunner.campaign_csv import read_campaign_chunk
 
     name = f"{store.path} campaign {cid}"
     previous: tuple[int, float] | None = None
     try:
-        for chunk in store.frames(cid, max_rows=max_rows, include_monitor=include_monitor, min_gap_s=min_gap_s):
+        for chunk in store.frames(cid, max_rows=max_rows, include_monitor=include_monitor, min_gap_s=min_gap_s,
+                                  rows=rows):
             first = int(chunk.index[0])
             chunk = marks.mark(read_campaign_chunk(chunk, name, first_row=first, previous=previous))
             previous = (int(chunk["run"].iat[-1]), float(chunk["t_s"].iat[-1]))

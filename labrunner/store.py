@@ -1337,8 +1337,8 @@ class Store:
         return cols.frame(categorical, sort="monitor" in kinds), cols
 
     def frames(self, campaign_id: int, *, max_rows: int = 1 << 20, include_monitor: bool = False,
-               categorical: bool = True, counts: bool = True, min_gap_s: float | None = None
-               ) -> Iterator[pd.DataFrame]:
+               categorical: bool = True, counts: bool = True, min_gap_s: float | None = None,
+               rows: int | None = None) -> Iterator[pd.DataFrame]:
         """`samples_frame(campaign_id, include_monitor=..., categorical=..., counts=...)` a bounded number of
         rows at a time: `pd.concat(frames(...))` equals it (index included: each chunk's RangeIndex
         continues the previous one's, so a chunk's first index is its first row's position in the campaign).
@@ -1350,11 +1350,17 @@ class Store:
         also closes only where no sample of it is later than the next block's start, so the chunks'
         rows are in the order of the whole sort. The IMU channels are counts when the whole campaign's
         blocks share one LSB (as `samples_frame` decides), so every chunk has the same dtypes; a label
-        outside the six orientations adds a category from the chunk that first holds it on."""
+        outside the six orientations adds a category from the chunk that first holds it on.
+
+        `rows`: read at most the campaign's first `rows` samples (a count taken earlier): passes over a
+        campaign that is still being recorded all see the rows the first pass saw (blocks are appended in
+        time order, so later blocks are the ones left out)."""
         if max_rows < 1:
             raise ValueError(f"max_rows must be at least 1, not {max_rows}")
         kinds = ("record", "monitor") if include_monitor else ("record",)
         total = self.sample_count(campaign_id, kinds)
+        if rows is not None:
+            total = min(total, rows)
         lsb = self._one_lsb(campaign_id, kinds) if counts else None
         labels = list(ORIENTATIONS)  # shared by the chunks: a category once added stays
         pending: list[Any] = []

@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from labrunner.errors import UserError
+
 from . import evaluation as _evaluation
 from .chunked_records import _KEYS, concat_records, join_arrays, take_rows
 from .evaluation import (
@@ -253,7 +255,8 @@ def _random_split(source: RowSource, n_rows: int, records: Records, fit_models: 
                 parts.append(part)
         static_train.add(a, train & (np.abs(a["rate"]) < STATIC_RATE_DPS), lab)
     if drawn != n_rows:
-        raise ValueError(f"the campaign's rows changed while it was evaluated ({drawn:,} read, {n_rows:,} expected)")
+        raise UserError(f"the campaign's rows changed while it was evaluated ({drawn:,} read, {n_rows:,} expected): "
+                        "fit it again")
     train_rec = concat_records(parts) if parts else records.subset(np.zeros(len(records), dtype=bool),
                                                                     with_labels=False)
     models = _models(fit_models, train_rec, res)

@@ -183,5 +183,6 @@ def campaign_rows(source: Any, campaign: int | None = None,
     close = getattr(chunks, "close", None)
     if close is not None:
         close()  # the provenance was all this read was for: the store is closed again
-    cid = int(provenance["campaign_id"])
-    return provenance, CampaignRows(chunks=lambda: campaign_chunks(source, cid, max_rows=max_rows)[1])
+    cid, rows = int(provenance["campaign_id"]), int(provenance["rows"])
+    # Every pass reads the rows counted now: a campaign still being recorded gains blocks between passes.
+    return provenance, CampaignRows(chunks=lambda: campaign_chunks(source, cid, max_rows=max_rows, rows=rows)[1])

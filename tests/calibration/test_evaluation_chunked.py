@@ -145,3 +145,38 @@ def test_beyond_the_shuffle_bound_every_split_still_scores_its_limit(campaign: p
                           OPTIONS.holdout_fraction, OPTIONS.eval_max_rows, OPTIONS.seed)
     assert [r.n_test_rows for r in out] == [OPTIONS.eval_max_rows] * 5
     assert all(np.isfinite(r.samples["polynomial"].rms).all() for r in out)
+
+
+def test_a_campaign_still_being_recorded_is_fitted_as_it_was_at_the_first_pass(tmp_path: Path) -> None:
+    """`labrunner fit DB` while the campaign records: every pass reads the rows the first one counted, so a
+    block committed between passes (here: during the evaluation's first split) changes nothing. Before, the
+    random split's second pass read the new block too and the fit failed (96,500 rows read, 96,000 expected)."""
+    import sqlite3
+
+    db = tmp_path / "quick.db"
+    assert labrunner.run(files("labrunner.procedures") / "quick.yaml", db=db, seed=2).state == "done"
+    opt = FitOptions(splits=("random", "between_temperatures"))
+    prov, rows = campaign_rows(db)
+    before = fit_campaign(rows, opt, provenance=prov).to_dict()
+    inserted: list[str] = []
+
+    def append_a_block(message: str) -> None:  # what a running campaign's next commit_record does
+        if not message.startswith("evaluation") or inserted:
+            return
+        with sqlite3.connect(db) as conn:
+            cols = [r[1] for r in conn.execute("PRAGMA table_info(sample_blocks)")]
+            last = dict(zip(cols, conn.execute(
+                "SELECT * FROM sample_blocks WHERE kind = 'record' ORDER BY t0_s DESC LIMIT 1").fetchone()))
+            last.update(id=None, step_idx=100_000, t0_s=last["t0_s"] + 1000.0)
+            conn.execute(f"INSERT INTO sample_blocks ({', '.join(f'{chr(34)}{c}{chr(34)}' for c in cols)}) "
+                         f"VALUES ({', '.join('?' * len(cols))})", [last[c] for c in cols])
+        inserted.append(message)
+
+    prov, rows = campaign_rows(db)
+    during = fit_campaign(rows, opt, provenance=prov, progress=append_a_block).to_dict()
+    assert inserted == ["evaluation: random"]
+    assert load_campaign_data(db).provenance["rows"] == prov["rows"] + 500  # the block is there ...
+    for d in (before, during):
+        d.pop("timings_s")
+        d["provenance"].pop("fitted_at")
+    assert during == before  # ... and no pass read it
