@@ -344,6 +344,52 @@ def rate_levels(records: Records, tol: float = 0.5) -> np.ndarray:
     return np.array([mags[groups == g].mean() for g in range(int(groups[-1]) + 1)])
 
 
+def split_plan(name: str, records: Records, steps: TemperatureSteps,
+               res: SplitResult) -> tuple[bool, np.ndarray | None]:
+    """What split `name` holds out: (usable, held-out records as a mask over `records`, or None for the
+    random split, whose held-out rows are drawn). Fills `res`'s temperatures and description, or says in
+    `res.skipped` why the data cannot support the split (usable False). One plan for `evaluate` and
+    `evaluation_chunked.evaluate_chunks`."""
+    order = np.argsort(steps.temp_c)
+    all_temps = [round(float(t), 2) for t in steps.temp_c[order]]
+    if name == "random":
+        res.train_temps_c = res.test_temps_c = all_temps
+        return True, None
+    if name in ("between_temperatures", "beyond_temperatures"):
+        k = len(steps)
+        if name == "between_temperatures":
+            held = order[1:-1:2] if k >= 3 else np.zeros(0, dtype=np.int64)
+            need = "at least 3 temperature steps"
+        else:
+            held = order[[0, -1]] if k >= 4 else np.zeros(0, dtype=np.int64)
+            need = "at least 4 temperature steps"
+        if held.size == 0:
+            res.skipped = f"needs {need}; the data has {k}"
+            return False, None
+        res.train_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[np.setdiff1d(order, held)])]
+        res.test_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[held])]
+        return True, np.isin(records.step, held)
+    if name == "time_blocks":
+        blocks, why = time_blocks(records)
+        if blocks is None:
+            res.skipped = why
+            return False, None
+        res.train_temps_c = res.test_temps_c = all_temps
+        res.description += f" ({why})"
+        return True, blocks
+    if name == "between_rates":
+        levels = rate_levels(records)
+        if levels.size < 3:
+            res.skipped = f"needs at least 3 distinct table rate magnitudes; the data has {levels.size}"
+            return False, None
+        held_levels = levels[1:-1:2]
+        mag = np.abs(records.rate_dps)
+        res.train_temps_c = res.test_temps_c = all_temps
+        res.description += f" (held out: {', '.join(f'{v:g}' for v in np.round(held_levels, 3))} deg/s)"
+        return True, np.any(np.abs(mag[:, None] - held_levels[None, :]) <= 0.5, axis=1)
+    raise ValueError(f"unknown evaluation split {name!r}; expected one of {', '.join(SPLITS)}")
+
+
 def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps, fit_models: FitModels,
              splits: tuple[str, ...] = SPLITS, holdout_fraction: float = 0.2, max_rows: int = 1_000_000,
              seed: int = 0, progress: Callable[[str], None] | None = None) -> list[SplitResult]:
@@ -351,61 +397,22 @@ def evaluate(a: dict[str, np.ndarray], records: Records, steps: TemperatureSteps
     rng = np.random.default_rng(seed)
     labels = records.row_record
     in_record = labels >= 0
-    order = np.argsort(steps.temp_c)
     results: list[SplitResult] = []
     for name in splits:
         if progress:
             progress(f"evaluation: {name}")
         res = SplitResult(name=name, description=_DESCRIPTIONS[name])
-        train_rec: Records | None = None
-        test_rows = np.zeros_like(in_record)
-        if name == "random":
+        usable, test_rec = split_plan(name, records, steps, res)
+        if not usable:
+            results.append(res)
+            continue
+        if test_rec is None:  # rows drawn at random
             test_rows = in_record & _draw(rng, labels.size, holdout_fraction)
             train_rec = records_from_labels(a, labels, records.row_interval_s, in_record & ~test_rows,
                                             with_labels=False)
-            res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
-        elif name in ("between_temperatures", "beyond_temperatures"):
-            k = len(steps)
-            if name == "between_temperatures":
-                held = order[1:-1:2] if k >= 3 else np.zeros(0, dtype=np.int64)
-                need = "at least 3 temperature steps"
-            else:
-                held = order[[0, -1]] if k >= 4 else np.zeros(0, dtype=np.int64)
-                need = "at least 4 temperature steps"
-            if held.size == 0:
-                res.skipped = f"needs {need}; the data has {k}"
-                results.append(res)
-                continue
-            test_rec = np.isin(records.step, held)
-            train_rec = records.subset(~test_rec, with_labels=False)
-            test_rows = in_record & test_rec[np.maximum(labels, 0)]
-            res.train_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[np.setdiff1d(order, held)])]
-            res.test_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[held])]
-        elif name == "time_blocks":
-            blocks, why = time_blocks(records)
-            if blocks is None:
-                res.skipped = why
-                results.append(res)
-                continue
-            train_rec = records.subset(~blocks, with_labels=False)
-            test_rows = in_record & blocks[np.maximum(labels, 0)]
-            res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
-            res.description += f" ({why})"
-        elif name == "between_rates":
-            levels = rate_levels(records)
-            if levels.size < 3:
-                res.skipped = f"needs at least 3 distinct table rate magnitudes; the data has {levels.size}"
-                results.append(res)
-                continue
-            held_levels = levels[1:-1:2]
-            mag = np.abs(records.rate_dps)
-            test_rec = np.any(np.abs(mag[:, None] - held_levels[None, :]) <= 0.5, axis=1)
-            train_rec = records.subset(~test_rec, with_labels=False)
-            test_rows = in_record & test_rec[np.maximum(labels, 0)]
-            res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
-            res.description += f" (held out: {', '.join(f'{v:g}' for v in np.round(held_levels, 3))} deg/s)"
         else:
-            raise ValueError(f"unknown evaluation split {name!r}; expected one of {', '.join(SPLITS)}")
+            train_rec = records.subset(~test_rec, with_labels=False)
+            test_rows = in_record & test_rec[np.maximum(labels, 0)]
         res.n_train_records = len(train_rec)
         try:
             models: dict[str, Scored] = dict(fit_models(train_rec))

@@ -45,9 +45,8 @@ from .evaluation import (
     SplitResult,
     _apply,
     _take,
-    rate_levels,
     score,
-    time_blocks,
+    split_plan,
 )
 from .ins import ins_errors, windows
 from .px4_reference import fit_px4
@@ -157,52 +156,15 @@ def evaluate_chunks(source: RowSource, n_rows: int, records: Records, steps: Tem
                     progress: Callable[[str], None] | None = None) -> list[SplitResult]:
     """`evaluation.evaluate` over a chunked campaign of `n_rows` rows whose records carry row ranges."""
     rng = np.random.default_rng(seed)
-    order = np.argsort(steps.temp_c)
     results: list[SplitResult] = []
     for name in splits:
         if progress:
             progress(f"evaluation: {name}")
         res = SplitResult(name=name, description=_DESCRIPTIONS[name])
-        test_rec: np.ndarray | None = None  # held-out records (None: rows drawn at random)
-        if name == "random":
-            res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
-        elif name in ("between_temperatures", "beyond_temperatures"):
-            k = len(steps)
-            if name == "between_temperatures":
-                held = order[1:-1:2] if k >= 3 else np.zeros(0, dtype=np.int64)
-                need = "at least 3 temperature steps"
-            else:
-                held = order[[0, -1]] if k >= 4 else np.zeros(0, dtype=np.int64)
-                need = "at least 4 temperature steps"
-            if held.size == 0:
-                res.skipped = f"needs {need}; the data has {k}"
-                results.append(res)
-                continue
-            test_rec = np.isin(records.step, held)
-            res.train_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[np.setdiff1d(order, held)])]
-            res.test_temps_c = [round(float(t), 2) for t in np.sort(steps.temp_c[held])]
-        elif name == "time_blocks":
-            blocks, why = time_blocks(records)
-            if blocks is None:
-                res.skipped = why
-                results.append(res)
-                continue
-            test_rec = blocks
-            res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
-            res.description += f" ({why})"
-        elif name == "between_rates":
-            levels = rate_levels(records)
-            if levels.size < 3:
-                res.skipped = f"needs at least 3 distinct table rate magnitudes; the data has {levels.size}"
-                results.append(res)
-                continue
-            held_levels = levels[1:-1:2]
-            mag = np.abs(records.rate_dps)
-            test_rec = np.any(np.abs(mag[:, None] - held_levels[None, :]) <= 0.5, axis=1)
-            res.train_temps_c = res.test_temps_c = [round(float(t), 2) for t in steps.temp_c[order]]
-            res.description += f" (held out: {', '.join(f'{v:g}' for v in np.round(held_levels, 3))} deg/s)"
-        else:
-            raise ValueError(f"unknown evaluation split {name!r}; expected one of {', '.join(SPLITS)}")
+        usable, test_rec = split_plan(name, records, steps, res)
+        if not usable:
+            results.append(res)
+            continue
         if test_rec is None:
             _random_split(source, n_rows, records, fit_models, holdout_fraction, max_rows, rng, res)
         else:

@@ -25,7 +25,7 @@ from .records import RecordOptions, Records, TemperatureSteps, temperature_steps
 from .six_position import StepCalibration, calibrate_steps
 from .thermal_lag_fit import LagReport, TemperatureFilter, fit_with_lag
 from .thermal_poly import PolyModel, TriadPoly, cv_order, fit_joint, fit_two_stage, max_order
-from .triads import ORIENTATIONS, TRIADS
+from .triads import TRIADS
 
 log = logging.getLogger(__name__)
 
@@ -321,28 +321,6 @@ def _options_dict(o: FitOptions) -> dict[str, Any]:
     d["splits"] = list(o.splits)
     d["rbf"]["widths"] = list(o.rbf.widths)
     return d
-
-
-def summarize_data(frame: pd.DataFrame, records: Records, steps: TemperatureSteps) -> dict[str, Any]:
-    t = frame["t_s"].to_numpy(dtype=float)
-    temp = frame["imu_temp_c"].to_numpy(dtype=float)
-    per_step = []
-    for k in np.argsort(steps.temp_c):
-        sel = records.step == k
-        per_step.append({
-            "temp_c": round(float(steps.temp_c[k]), 3), "range_c": [float(steps.lo_c[k]), float(steps.hi_c[k])],
-            "records": int(sel.sum()),
-            "orientations": [ORIENTATIONS[i] for i in sorted(set(records.orientation[sel].tolist()))],
-        })
-    return {
-        "rows": int(len(frame)), "rows_in_records": int((records.row_record >= 0).sum()), "records": len(records),
-        "runs": int(frame["run"].nunique()),
-        "time_range_s": [float(t.min()), float(t.max())], "imu_temp_range_c": [float(temp.min()), float(temp.max())],
-        "orientations": sorted({str(o) for o in frame["orientation"].unique()},  # per value, not per row
-                               key=lambda o: ORIENTATIONS.index(o)),
-        "table_rates_dps": sorted({round(float(r), 1) for r in records.rate_dps}),
-        "temperature_steps": per_step,
-    }
 
 
 def fit_campaign(frame: pd.DataFrame | CampaignRows, options: FitOptions | None = None,

@@ -54,7 +54,7 @@ class CampaignRows:
 
 @dataclass
 class _Summary:
-    """What `fit.summarize_data` reports of all rows, accumulated chunk by chunk."""
+    """What the fit reports of all rows (`FitResult.data_summary`), accumulated chunk by chunk."""
 
     rows: int = 0
     runs: set[int] = field(default_factory=set)
@@ -88,7 +88,7 @@ def read_records(rows: CampaignRows, options: RecordOptions,
 
 
 def summary_dict(summary: _Summary, records: Records, steps: TemperatureSteps) -> dict[str, Any]:
-    """`fit.summarize_data` of a summary accumulated in chunks (the same dictionary)."""
+    """`FitResult.data_summary`: the rows' summary accumulated in chunks, with the records and steps."""
     per_step = []
     for k in np.argsort(steps.temp_c):
         sel = records.step == k
