@@ -160,3 +160,34 @@ def test_figures_are_quick_on_a_small_fit(result, tmp_path):
     report = write_figures(result, tmp_path / "timed")
     assert len(report.written) == len(EXPECTED)
     assert time.perf_counter() - t0 < 15.0  # ~2 s alone; generous for a shared 2-core CI machine
+
+
+def test_log_axis_labels_are_plain_text_with_the_same_ticks(result):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = allan_figure(allan_curves(result))
+    ax = fig.axes[0]
+    FigureCanvasAgg(fig).draw()
+    mathtext = [t.get_text() for t in ax.xaxis.get_ticklabels() if t.get_text()]
+    assert mathtext and all(s.startswith("$") for s in mathtext)  # matplotlib's own labels
+    figures_mod.plain_log_labels(fig)
+    FigureCanvasAgg(fig).draw()
+    plain = [t.get_text() for t in ax.xaxis.get_ticklabels() if t.get_text()]
+    assert plain == [figures_mod.plain_power(s) for s in mathtext] and not any("$" in s for s in plain)
+
+
+def test_plain_power_writes_mathtext_powers_as_superscripts():
+    assert figures_mod.plain_power(r"$\mathdefault{10^{-2}}$") == "10⁻²"
+    assert figures_mod.plain_power(r"$\mathdefault{10^{1}}$") == "10¹"
+    assert figures_mod.plain_power(r"$\mathdefault{2\times10^{-3}}$") == "2×10⁻³"
+    assert figures_mod.plain_power("") == ""
+    assert figures_mod.plain_power(r"$\mathdefault{0.5}$") == r"$\mathdefault{0.5}$"  # not a power: as it was
+
+
+def test_titles_sit_at_the_top_of_their_axes(result, tmp_path):
+    import matplotlib as mpl
+
+    with mpl.rc_context(figures_mod._RC):
+        fig = thermal_figure(result, "accel", "bias")
+    assert all(not ax._autotitlepos for ax in fig.axes)  # no search for room above each axes when drawn
+    assert fig.axes[0].title.get_position()[1] == 1.0
