@@ -279,40 +279,63 @@ def _remove_offsets(err: np.ndarray, run: np.ndarray, offsets: tuple[np.ndarray,
     err[has] -= off[pos[has]]
 
 
+def run_offsets(models: Mapping[str, Scored], sub: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Raw data's and every model's offset per run over the training rows `sub` (`_take`)."""
+    scored: dict[str, Scored | None] = {"raw": None, **models}
+    return {name: _run_offsets(model, sub) for name, model in scored.items()}
+
+
+class ScoreSums:
+    """Raw data's and every model's running sums over a split's held-out rows, fed a batch of rows at a
+    time (`add`, the rows `_take`n and their records): `score` feeds its rows SCORE_CHUNK at a time, and
+    the chunked evaluation feeds the same batches as the rows stream past (the same sums, bit for bit).
+    `offsets` (`run_offsets`): each model's offset per run, removed from its errors in that run."""
+
+    def __init__(self, models: Mapping[str, Scored], n_records: int,
+                 offsets: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+        self.scored: dict[str, Scored | None] = {"raw": None, **models}
+        self.offsets = dict(offsets or {})
+        self.sums = {name: _Scores(n_records) for name in self.scored}
+        self.n = 0
+
+    def add(self, sub: dict[str, np.ndarray], lab: np.ndarray) -> None:
+        self.n += int(lab.size)
+        ref = reference_values(sub["orientation"], sub["rate"])
+        static = np.abs(sub["rate"]) < STATIC_RATE_DPS
+        done: dict[int, Compensated] = {}
+        for name, model in self.scored.items():
+            values, extrap = _apply(model, sub, done=done)
+            err = values - ref
+            if name in self.offsets:
+                _remove_offsets(err, sub["run"], self.offsets[name])
+            self.sums[name].add(values, err, extrap, lab, static)
+
+    def fill(self, result: SplitResult) -> None:
+        result.n_test_rows = self.n
+        for name, acc in self.sums.items():
+            if name != "raw":
+                result.extrapolated_fraction[name] = acc.extrapolated / acc.n if acc.n else 0.0
+            result.samples[name] = acc.sample_stats()
+            result.records[name] = acc.record_stats()
+            result.static[name] = acc.static_check()
+
+
 def score(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
-          result: SplitResult, offset_rows: np.ndarray | None = None, chunk: int = SCORE_CHUNK) -> None:
+          result: SplitResult, offset_rows: np.ndarray | None = None, chunk: int | None = None) -> None:
     """Fill `result` with the errors of raw data and every model on the given rows. With `offset_rows`
     (training rows), each model's mean error per run over them is removed from its errors in that run.
 
-    The rows are scored `chunk` at a time into running sums (no held-out error array is kept)."""
+    The rows are scored `chunk` (default SCORE_CHUNK) at a time into running sums (no held-out error array
+    is kept)."""
+    chunk = SCORE_CHUNK if chunk is None else chunk
     idx = np.flatnonzero(rows) if rows.dtype == bool else np.asarray(rows, dtype=np.int64)
-    result.n_test_rows = int(idx.size)
-    scored: dict[str, Scored | None] = {"raw": None, **models}
-    offsets: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    if offset_rows is not None:
-        offset_sub = _take(a, offset_rows)
-        offsets = {name: _run_offsets(model, offset_sub) for name, model in scored.items()}
+    offsets = run_offsets(models, _take(a, offset_rows)) if offset_rows is not None else None
     n_rec = int(labels.max()) + 1 if labels.size else 0
-    sums = {name: _Scores(n_rec) for name in scored}
+    sums = ScoreSums(models, n_rec, offsets)
     for lo in range(0, idx.size, chunk):
         part = idx[lo:lo + chunk]
-        sub = _take(a, part)
-        ref = reference_values(sub["orientation"], sub["rate"])
-        lab = labels[part]
-        static = np.abs(sub["rate"]) < STATIC_RATE_DPS
-        done: dict[int, Compensated] = {}
-        for name, model in scored.items():
-            values, extrap = _apply(model, sub, done=done)
-            err = values - ref
-            if name in offsets:
-                _remove_offsets(err, sub["run"], offsets[name])
-            sums[name].add(values, err, extrap, lab, static)
-    for name, acc in sums.items():
-        if name != "raw":
-            result.extrapolated_fraction[name] = acc.extrapolated / acc.n if acc.n else 0.0
-        result.samples[name] = acc.sample_stats()
-        result.records[name] = acc.record_stats()
-        result.static[name] = acc.static_check()
+        sums.add(_take(a, part), labels[part])
+    sums.fill(result)
 
 
 def _draw(rng: np.random.Generator, n: int, fraction: float, chunk: int = 1 << 20) -> np.ndarray:

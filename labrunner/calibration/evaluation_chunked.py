@@ -1,32 +1,38 @@
 """The evaluation (`evaluation.evaluate`) of a campaign read chunk by chunk: the same splits, draws and
-scores, from the records' row ranges and passes over the rows instead of the whole frame.
+scores, from the records' row ranges and passes over the rows shared by every split instead of the
+whole frame.
 
-Each split passes over the campaign's rows (`RowSource`: a fresh pass of chunks in order) cut so that
-no record straddles a cut (`aligned_chunks`), and keeps only what its scores need:
+Every split is planned first: the record splits' models are fitted on their training records (no row
+needed), the random split's held-out rows counted from the generator's stream (the same doubles as one
+`rng.random(n)`, replayed from its saved state in each pass), and the held-out and offset rows to score
+drawn as `_limit_rows` draws them (`rng.choice` over the population's size gives the positions
+`rng.choice` over the row indices gives: the same generator calls in the same order; beyond
+CHOICE_MAX_POP rows, 8 M, a blocked draw in bounded memory, uniform as well but of other rows). Then
+the passes over the campaign's rows (`RowSource`), cut so that no record straddles a cut
+(`aligned_chunks`), serve every split at once:
 
-* ``random``: the held-out draw is the generator's stream over the rows in order, the same doubles
-  as one `rng.random(n)` (replayed from the generator's saved state in the second pass); the training
-  records are summed chunk by chunk by `records_from_labels` (each record within one chunk: the same
-  sums);
-* the held-out rows scored are drawn as `_limit_rows` draws them (`rng.choice` over the population's
-  size gives the positions `rng.choice` over the row indices gives: the same generator calls in the
-  same order), and only those rows (at most `max_rows`) are gathered; beyond CHOICE_MAX_POP rows
-  (8 M: 2.3x the paper campaign's largest held-out part) a blocked draw in bounded memory, uniform
-  as well but of other rows;
-* PX4's reference is fitted on the static training rows, gathered (their outputs as the store's
-  counts): PX4's median filter and sweep run over each orientation's whole static log;
-* the INS test takes the times and records of the static held-out rows to choose its windows
-  (`ins.windows`), then gathers the windows' rows (at most MAX_WINDOWS x one minute).
+1. the models' data: the random split's training records, summed chunk by chunk by
+   `records_from_labels` (each record within one chunk: the same sums); `time_blocks`' offset rows
+   (at most OFFSET_MAX_ROWS); PX4's first pass (`Px4Stream`: each orientation's temperature range
+   and sweep check); the INS test's candidate rows, held as pieces (`ins.RowRuns`);
+2. only when some orientation of some split is a sweep (a field log, not the paper campaign's
+   soaks): PX4's median of the filtered outputs, then a pass for its bins; also the rare cases the
+   plan could not settle (the random split's training part could not be fitted, so the later draws
+   differ; INS pieces that cannot tell where a gap is): their rows then;
+3. the scoring: every split's held-out rows scored as they stream past, in the batches `score`
+   takes (SCORE_CHUNK rows: the same sums), and the INS windows' rows gathered (at most
+   MAX_WINDOWS x one minute per split).
 
-What is held per row is therefore the static rows of a split (5 % of the paper campaign's rows), not
-the campaign; the numbers are those of `evaluate` on the whole frame, bit for bit
-(tests/calibration/test_evaluation_chunked.py).
+What is held grows with the records, the capped draws (held-out ranks, offset rows, INS windows) and
+the distinct values of the quantised outputs and times, not with the rows; the numbers are those of
+`evaluate` on the whole frame, bit for bit (tests/calibration/test_evaluation_chunked.py).
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -42,14 +48,15 @@ from .evaluation import (
     STATIC_RATE_DPS,
     FitModels,
     Scored,
+    ScoreSums,
     SplitResult,
     _apply,
     _take,
-    score,
+    run_offsets,
     split_plan,
 )
-from .ins import ins_errors, windows
-from .px4_reference import fit_px4
+from .ins import RowRuns, ins_errors, windows
+from .px4_reference import Px4Stream
 from .records import Records, TemperatureSteps, frame_arrays, records_from_labels
 from .triads import ORIENTATIONS
 
@@ -121,25 +128,36 @@ def _blocked_choice(pop: int, size: int, rng: np.random.Generator) -> np.ndarray
 
 
 INS_CHUNK = 1 << 19  # INS rows compensated at once
-PX4_KEYS = ("orientation", "temp", "rate")  # what fit_px4 reads of a row besides its outputs
+DRAW_CHUNK = 1 << 20  # rows of the random split's stream drawn at once when its held-out rows are counted
+
+
+class _Pick:
+    """Rows picked by rank among the rows of a mask, met chunk by chunk in order (ranks None: all)."""
+
+    def __init__(self, ranks: np.ndarray | None) -> None:
+        self.ranks = ranks
+        self.seen = 0
+
+    def __call__(self, mask: np.ndarray) -> np.ndarray:
+        idx = np.flatnonzero(mask)
+        if self.ranks is not None:
+            lo, hi = np.searchsorted(self.ranks, [self.seen, self.seen + idx.size])
+            idx = idx[self.ranks[lo:hi] - self.seen]
+        self.seen += int(np.count_nonzero(mask))
+        return idx
 
 
 class _Gather:
     """Rows picked by rank among the rows of a mask, met chunk by chunk in order (`keys` and outputs)."""
 
     def __init__(self, ranks: np.ndarray | None, keys: tuple[str, ...] = _KEYS) -> None:
-        self.ranks = ranks
+        self.pick = _Pick(ranks)
         self.keys = keys
-        self.seen = 0
         self.parts: list[dict[str, Any]] = []
         self.labels: list[np.ndarray] = []
 
     def add(self, a: dict[str, Any], mask: np.ndarray, lab: np.ndarray) -> None:
-        idx = np.flatnonzero(mask)
-        if self.ranks is not None:
-            lo, hi = np.searchsorted(self.ranks, [self.seen, self.seen + idx.size])
-            self.seen += idx.size
-            idx = idx[self.ranks[lo:hi] - (self.seen - idx.size)]
+        idx = self.pick(mask)
         if idx.size:
             self.parts.append(take_rows(a, idx, self.keys))
             self.labels.append(lab[idx])
@@ -150,27 +168,220 @@ class _Gather:
         return join_arrays(self.parts), np.concatenate(self.labels)
 
 
+class _Batches:
+    """Held-out rows met chunk by chunk, fed to the split's `ScoreSums` in batches of exactly SCORE_CHUNK
+    rows: the batches `score` takes of the same rows gathered whole, so the same sums in the same order."""
+
+    def __init__(self, sums: ScoreSums, size: int | None = None) -> None:
+        self.sums = sums
+        self.size = _evaluation.SCORE_CHUNK if size is None else size
+        self.parts: list[dict[str, np.ndarray]] = []
+        self.labels: list[np.ndarray] = []
+        self.held = 0
+
+    def add(self, a: dict[str, Any], idx: np.ndarray, lab: np.ndarray) -> None:
+        if idx.size == 0:
+            return
+        self.parts.append(_take(a, idx))
+        self.labels.append(lab[idx])
+        self.held += int(idx.size)
+        while self.held >= self.size:
+            self._feed(self.size)
+
+    def close(self, res: SplitResult) -> None:
+        if self.held:
+            self._feed(self.held)
+        self.sums.fill(res)
+
+    def _feed(self, m: int) -> None:
+        if len(self.parts) == 1 and self.held == m:
+            sub, lab = self.parts[0], self.labels[0]
+        else:
+            sub = {k: np.concatenate([p[k] for p in self.parts]) for k in self.parts[0]}
+            lab = np.concatenate(self.labels)
+        rest = self.held - m
+        self.parts = [{k: v[m:].copy() for k, v in sub.items()}] if rest else []
+        self.labels = [lab[m:].copy()] if rest else []
+        self.held = rest
+        self.sums.add({k: v[:m] for k, v in sub.items()}, lab[:m])
+
+
+@dataclass
+class _Split:
+    """One split's plan and what the passes gather for it."""
+
+    res: SplitResult
+    test_rec: np.ndarray | None  # held-out records (None: the random split, whose held-out rows are drawn)
+    models: dict[str, Scored] | None = None
+    fitted: bool = True  # False: the training part could not be fitted (nothing scored)
+    state: dict[str, Any] | None = None  # random: the generator's state before its draw (replayed in each pass)
+    after: dict[str, Any] | None = None  # random: ... and after it
+    n_test: int = 0  # random: held-out rows within records
+    parts: list[Records] = field(default_factory=list)  # random: training records, chunk by chunk
+    test_ranks: np.ndarray | None = None
+    offset_ranks: np.ndarray | None = None
+    offset_rows: _Gather | None = None
+    regather: bool = False  # the offset rows to gather again (drawn again after a random split failed)
+    px4: Px4Stream = field(default_factory=Px4Stream)
+    runs: RowRuns | None = None
+    static_test: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None  # the INS rows, when pieces cannot tell
+    win: np.ndarray | None = None  # (W, n) campaign positions of the INS windows
+
+    @property
+    def random(self) -> bool:
+        return self.test_rec is None
+
+    @property
+    def offsets(self) -> bool:
+        """Each model's offset per run removed (time_blocks)."""
+        return self.res.name == "time_blocks"
+
+    @property
+    def live(self) -> bool:
+        return self.fitted and self.res.skipped is None
+
+
+class _Masks:
+    """Each split's held-out and training rows of the chunks of one pass (the random split's draw replayed)."""
+
+    def __init__(self, splits: list[_Split], fraction: float) -> None:
+        self.fraction = fraction
+        self.replay: dict[int, np.random.Generator] = {}
+        for i, s in enumerate(splits):
+            if s.random:
+                g = np.random.default_rng()
+                assert s.state is not None
+                g.bit_generator.state = s.state
+                self.replay[i] = g
+        self.flags = {i: (np.append(s.test_rec, False), np.append(~s.test_rec, False))
+                      for i, s in enumerate(splits) if s.test_rec is not None}  # index -1 (in no record): neither
+
+    def __call__(self, i: int, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if i in self.replay:
+            held = self.replay[i].random(lab.size) < self.fraction
+            inside = lab >= 0
+            return inside & held, inside & ~held
+        test, train = self.flags[i]
+        return test[lab], train[lab]
+
+
+_SplitMasks = list[tuple[_Split, np.ndarray, np.ndarray]]  # (split, its held-out rows, its training rows)
+
+
+def _passes(source: RowSource, records: Records, n_rows: int, splits: list[_Split], fraction: float
+            ) -> Iterator[tuple[int, dict[str, Any], np.ndarray, np.ndarray, _SplitMasks]]:
+    """One pass: (first row's position, arrays, record labels, records there, [(split, held-out, training)])
+    per chunk; every split's draw replayed in order (each must take every chunk). Checks the rows read."""
+    masks = _Masks(splits, fraction)
+    read = 0
+    for g0, a in aligned_chunks(source, records):
+        m = int(a["t"].size)
+        read += m
+        lab, here = _labels(records, g0, m)
+        yield g0, a, lab, here, [(s, *masks(i, lab)) for i, s in enumerate(splits)]
+    if read != n_rows:
+        raise UserError(f"the campaign's rows changed while it was evaluated ({read:,} read, {n_rows:,} expected): "
+                        "fit it again")
+
+
+def _count_held(rng: np.random.Generator, records: Records, n_rows: int, fraction: float) -> int:
+    """The random split's held-out rows within records: its draw (advancing `rng` as the draw of every row does)."""
+    n = 0
+    for lo in range(0, n_rows, DRAW_CHUNK):
+        m = min(DRAW_CHUNK, n_rows - lo)
+        held = rng.random(m) < fraction
+        lab, _ = _labels(records, lo, m)
+        n += int(np.count_nonzero(held & (lab >= 0)))
+    return n
+
+
+def _draw(splits: list[_Split], records: Records, n_rows: int, fraction: float, max_rows: int, seed: int) -> None:
+    """Every split's held-out (and offset) ranks, by the generator's calls `evaluate` makes, in its order:
+    the random split's stream over the rows, then its subset; a record split's offset rows, then its subset.
+    A split whose training part could not be fitted draws nothing after its stream."""
+    rng = np.random.default_rng(seed)
+    n = records.n_rows.astype(np.int64)
+    for s in splits:
+        if s.random:
+            if s.after is None:
+                s.state = dict(rng.bit_generator.state)
+                s.n_test = _count_held(rng, records, n_rows, fraction)
+                s.after = dict(rng.bit_generator.state)
+            else:
+                rng.bit_generator.state = s.after
+            if s.fitted:
+                s.test_ranks = _compact(_positions(s.n_test, max_rows, rng), s.n_test)
+            continue
+        assert s.test_rec is not None
+        if s.offsets:
+            pop = int(n[~s.test_rec].sum())
+            s.offset_ranks = _compact(_positions(pop, _evaluation.OFFSET_MAX_ROWS, rng), pop)
+        pop = int(n[s.test_rec].sum())
+        s.test_ranks = _compact(_positions(pop, max_rows, rng), pop)
+
+
+def _same(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+
+
+def _compact(ranks: np.ndarray | None, pop: int) -> np.ndarray | None:
+    """Ranks among `pop` rows as int32 when every rank does (the same values in half the memory)."""
+    return ranks.astype(np.int32) if ranks is not None and pop < 2 ** 31 else ranks
+
+
 def evaluate_chunks(source: RowSource, n_rows: int, records: Records, steps: TemperatureSteps,
                     fit_models: FitModels, splits: tuple[str, ...] = SPLITS, holdout_fraction: float = 0.2,
                     max_rows: int = 1_000_000, seed: int = 0,
                     progress: Callable[[str], None] | None = None) -> list[SplitResult]:
     """`evaluation.evaluate` over a chunked campaign of `n_rows` rows whose records carry row ranges."""
-    rng = np.random.default_rng(seed)
-    results: list[SplitResult] = []
+    plan: list[_Split] = []
     for name in splits:
         if progress:
             progress(f"evaluation: {name}")
         res = SplitResult(name=name, description=_DESCRIPTIONS[name])
         usable, test_rec = split_plan(name, records, steps, res)
+        s = _Split(res=res, test_rec=test_rec)
+        plan.append(s)
         if not usable:
-            results.append(res)
-            continue
-        if test_rec is None:
-            _random_split(source, n_rows, records, fit_models, holdout_fraction, max_rows, rng, res)
-        else:
-            _record_split(source, records, test_rec, fit_models, name == "time_blocks", max_rows, rng, res)
-        results.append(res)
-    return results
+            s.fitted = False
+        elif test_rec is not None:  # a record split's models need its training records only
+            s.models = _models(fit_models, records.subset(~test_rec, with_labels=False), res)
+            s.fitted = s.models is not None
+    live = [s for s in plan if s.res.skipped is None]
+    _draw(live, records, n_rows, holdout_fraction, max_rows, seed)
+    if not live:
+        return [s.res for s in plan]
+    if progress:
+        progress("evaluation: training parts, PX4's temperature ranges, INS candidates")
+    _models_pass(source, records, n_rows, live, holdout_fraction)
+    for s in live:
+        if s.random:
+            s.models = _models(fit_models, concat_records(s.parts) if s.parts else
+                               records.subset(np.zeros(len(records), dtype=bool), with_labels=False), s.res)
+            s.fitted = s.models is not None
+            s.parts = []
+    if not all(s.fitted for s in live if s.random):  # the later splits' draws come earlier in the stream
+        drawn = [s.offset_ranks for s in live]
+        _draw(live, records, n_rows, holdout_fraction, max_rows, seed)
+        for s, before in zip(live, drawn):
+            if s.offsets and not _same(before, s.offset_ranks):
+                s.regather = True  # the offset rows gathered were drawn by the wrong stream: again, next pass
+    for s in live:
+        if s.runs is not None:
+            s.win = s.runs.window_positions()
+            if s.win is None:
+                log.info("%s: INS windows chosen from the rows themselves (a gap threshold within a run)", s.res.name)
+                s.static_test = []
+            s.runs = None
+    live = [s for s in live if s.fitted]
+    _more_passes(source, records, n_rows, live, holdout_fraction, progress)
+    if progress:
+        progress("evaluation: scoring")
+    _score_pass(source, records, n_rows, live, holdout_fraction)
+    for s in live:
+        if s.random:
+            s.res.ins_skipped = "held-out rows are scattered: no 60 s window of contiguous held-out rows"
+    return [s.res for s in plan]
 
 
 def _models(fit_models: FitModels, train: Records, res: SplitResult) -> dict[str, Scored] | None:
@@ -182,104 +393,115 @@ def _models(fit_models: FitModels, train: Records, res: SplitResult) -> dict[str
         return None
 
 
-def _add_px4(models: dict[str, Scored], static_train: _Gather, res: SplitResult) -> None:
-    a, _ = static_train.arrays()
-    if a is None:  # no static training rows: fit_px4 of an empty selection
-        a = {k: np.zeros(0) for k in ("rate", "temp")} | {"orientation": np.zeros(0, dtype=np.int8)}
-    px4 = fit_px4(a, np.ones(a["rate"].size, dtype=bool))
-    if px4.fits:
-        models["px4"] = px4
-    if px4.skipped:
-        res.px4_skipped = px4.skipped_sentence(ORIENTATIONS)
-
-
-def _random_split(source: RowSource, n_rows: int, records: Records, fit_models: FitModels, fraction: float,
-                  max_rows: int, rng: np.random.Generator, res: SplitResult) -> None:
-    state = rng.bit_generator.state  # the draw replayed in the second pass
-    parts: list[Records] = []
-    static_train = _Gather(None, PX4_KEYS)
-    n_test = 0
-    drawn = 0
-    for g0, a in aligned_chunks(source, records):
-        m = int(a["t"].size)
-        held = rng.random(m) < fraction
-        drawn += m
-        lab, here = _labels(records, g0, m)
-        test = (lab >= 0) & held
-        train = (lab >= 0) & ~held
-        n_test += int(np.count_nonzero(test))
-        if here.size:
-            local = np.where(lab >= 0, lab - (here[0] if here.size else 0), -1)
-            part = records_from_labels(a, local, records.row_interval_s[here], train, with_labels=False)
-            if len(part):
-                part.row_start += g0
-                part.row_stop += g0
-                parts.append(part)
-        static_train.add(a, train & (np.abs(a["rate"]) < STATIC_RATE_DPS), lab)
-    if drawn != n_rows:
-        raise UserError(f"the campaign's rows changed while it was evaluated ({drawn:,} read, {n_rows:,} expected): "
-                        "fit it again")
-    train_rec = concat_records(parts) if parts else records.subset(np.zeros(len(records), dtype=bool),
-                                                                    with_labels=False)
-    models = _models(fit_models, train_rec, res)
-    if models is None:
-        return
-    _add_px4(models, static_train, res)
-    test_rows = _Gather(_positions(n_test, max_rows, rng))
-    replay = np.random.default_rng()
-    replay.bit_generator.state = state
-    for g0, a in aligned_chunks(source, records):
-        m = int(a["t"].size)
-        held = replay.random(m) < fraction
-        lab, _ = _labels(records, g0, m)
-        test_rows.add(a, (lab >= 0) & held, lab)
-    _score(models, test_rows, None, res)
-    res.ins_skipped = "held-out rows are scattered: no 60 s window of contiguous held-out rows"
-
-
-def _record_split(source: RowSource, records: Records, test_rec: np.ndarray, fit_models: FitModels,
-                  offsets: bool, max_rows: int, rng: np.random.Generator, res: SplitResult) -> None:
-    models = _models(fit_models, records.subset(~test_rec, with_labels=False), res)
-    if models is None:
-        return
-    n = records.n_rows.astype(np.int64)
-    offset_rows = _Gather(_positions(int(n[~test_rec].sum()), _evaluation.OFFSET_MAX_ROWS, rng)) if offsets else None
-    test_rows = _Gather(_positions(int(n[test_rec].sum()), max_rows, rng))
-    static_train = _Gather(None, PX4_KEYS)
-    static_test: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # campaign position, t, record
-    flag = np.append(test_rec, False)  # index -1 (rows in no record): neither part
-    train_flag = np.append(~test_rec, False)
-    for g0, a in aligned_chunks(source, records):
-        m = int(a["t"].size)
-        lab, _ = _labels(records, g0, m)
-        test, train = flag[lab], train_flag[lab]
+def _models_pass(source: RowSource, records: Records, n_rows: int, live: list[_Split], fraction: float) -> None:
+    """Pass 1: the random split's training records, PX4's ranges, time_blocks' offset rows, INS candidates."""
+    for s in live:
+        if s.offsets:
+            s.offset_rows = _Gather(s.offset_ranks)
+        if not s.random and s.fitted:
+            s.runs = RowRuns()
+    n_held = {id(s): 0 for s in live}
+    for g0, a, lab, here, masks in _passes(source, records, n_rows, live, fraction):
         static = np.abs(a["rate"]) < STATIC_RATE_DPS
-        static_train.add(a, train & static, lab)
-        if offset_rows is not None:
-            offset_rows.add(a, train, lab)
-        test_rows.add(a, test, lab)
-        sel = np.flatnonzero(test & static)
-        static_test.append((g0 + sel, a["t"][sel], lab[sel]))
-    _add_px4(models, static_train, res)
-    _score(models, test_rows, offset_rows, res)
-    pos = np.concatenate([p[0] for p in static_test]) if static_test else np.zeros(0, dtype=np.int64)
-    t = np.concatenate([p[1] for p in static_test]) if static_test else np.zeros(0)
-    lab_s = np.concatenate([p[2] for p in static_test]) if static_test else np.zeros(0, dtype=np.int64)
-    _ins(models, source, records, pos, t, lab_s, res)
+        for s, test, train in masks:
+            if s.random:
+                n_held[id(s)] += int(np.count_nonzero(test))
+                if here.size:
+                    local = np.where(lab >= 0, lab - here[0], -1)
+                    part = records_from_labels(a, local, records.row_interval_s[here], train, with_labels=False)
+                    if len(part):
+                        part.row_start += g0
+                        part.row_stop += g0
+                        s.parts.append(part)
+            elif not s.fitted:
+                continue
+            s.px4.add(a, train)
+            if s.offset_rows is not None:
+                s.offset_rows.add(a, train, lab)
+            if s.runs is not None:
+                sel = np.flatnonzero(test & static)
+                s.runs.add(a["t"][sel], lab[sel], g0 + sel)
+    for s in live:
+        assert not s.random or n_held[id(s)] == s.n_test, "the random split's draw was not replayed"
+        s.px4.end_pass()
 
 
-def _score(models: Mapping[str, Scored], test_rows: _Gather, offset_rows: _Gather | None, res: SplitResult) -> None:
-    a, labels = test_rows.arrays()
-    n_test = int(labels.size)
-    if offset_rows is not None:
-        b, lab_b = offset_rows.arrays()
-        if b is not None:
-            a = b if a is None else join_arrays([a, b])
-            labels = np.concatenate([labels, lab_b])
-    if a is None:
-        a = _empty_arrays()
-    off = np.arange(n_test, labels.size) if offset_rows is not None else None
-    score(models, a, np.arange(n_test), labels, res, off)
+def _more_passes(source: RowSource, records: Records, n_rows: int, live: list[_Split], fraction: float,
+                 progress: Callable[[str], None] | None) -> None:
+    """PX4's further passes (sweeps only) and what the plan could not settle: offset rows drawn again,
+    INS windows that need their rows."""
+    while True:
+        want = [s for s in live if s.px4.needs_pass or s.regather or s.static_test is not None]
+        if not want:
+            break
+        if progress:
+            progress("evaluation: PX4's sweeps" if any(s.px4.needs_pass for s in want) else "evaluation: rows again")
+        for s in want:
+            if s.regather:
+                s.offset_rows = _Gather(s.offset_ranks)
+        for g0, a, lab, _, masks in _passes(source, records, n_rows, want, fraction):
+            for s, test, train in masks:
+                s.px4.add(a, train)
+                if s.regather and s.offset_rows is not None:
+                    s.offset_rows.add(a, train, lab)
+                if s.static_test is not None:
+                    sel = np.flatnonzero(test & (np.abs(a["rate"]) < STATIC_RATE_DPS))
+                    s.static_test.append((g0 + sel, a["t"][sel], lab[sel]))
+        for s in want:
+            if s.px4.needs_pass:
+                s.px4.end_pass()
+            s.regather = False
+            if s.static_test is not None:
+                pos = np.concatenate([p[0] for p in s.static_test])
+                idx = windows(np.concatenate([p[1] for p in s.static_test]),
+                              np.concatenate([p[2] for p in s.static_test]))
+                s.win = pos[idx] if idx.size else idx
+                s.static_test = None
+
+
+def _score_pass(source: RowSource, records: Records, n_rows: int, live: list[_Split], fraction: float) -> None:
+    """The last pass: every split's held-out rows scored as they stream past; the INS windows' rows."""
+    batches: dict[int, _Batches] = {}
+    picks: dict[int, _Pick] = {}
+    ins_rows: dict[int, tuple[np.ndarray, list[dict[str, Any]]]] = {}
+    for s in live:
+        assert s.models is not None
+        px4 = s.px4.result()
+        if px4.fits:
+            s.models["px4"] = px4
+        if px4.skipped:
+            s.res.px4_skipped = px4.skipped_sentence(ORIENTATIONS)
+        offsets = None
+        if s.offset_rows is not None:
+            b, _ = s.offset_rows.arrays()
+            offsets = run_offsets(s.models, _take(b if b is not None else _empty_arrays(), np.arange(
+                0 if b is None else b["t"].size)))
+            s.offset_rows = None
+        batches[id(s)] = _Batches(ScoreSums(s.models, len(records), offsets))
+        picks[id(s)] = _Pick(s.test_ranks)
+        s.test_ranks = None
+        if s.win is not None and s.win.size:
+            ins_rows[id(s)] = (np.unique(s.win.ravel()), [])
+    for g0, a, lab, _, masks in _passes(source, records, n_rows, live, fraction):
+        m = int(a["t"].size)
+        for s, test, _ in masks:
+            batches[id(s)].add(a, picks[id(s)](test), lab)
+            if id(s) in ins_rows:
+                want, parts = ins_rows[id(s)]
+                lo, hi = np.searchsorted(want, [g0, g0 + m])
+                if hi > lo:
+                    parts.append(take_rows(a, want[lo:hi] - g0))
+    for s in live:
+        batches.pop(id(s)).close(s.res)
+        if s.random:
+            continue
+        if s.win is None or s.win.size == 0:
+            s.res.ins_skipped = "no 60 s window of contiguous static held-out rows (records are shorter)"
+            continue
+        want, parts = ins_rows.pop(id(s))
+        assert s.models is not None
+        _ins(s.models, join_arrays(parts), np.searchsorted(want, s.win), s.res)
+        s.win = None
 
 
 def _empty_arrays() -> dict[str, Any]:
@@ -289,24 +511,8 @@ def _empty_arrays() -> dict[str, Any]:
         "y": Outputs([np.zeros(0) for _ in range(6)])}
 
 
-def _ins(models: Mapping[str, Scored], source: RowSource, records: Records, pos: np.ndarray, t: np.ndarray,
-         lab: np.ndarray, res: SplitResult) -> None:
-    """`evaluation.ins_test` from the static held-out rows' positions, times and records."""
-    idx = windows(t, lab)
-    if idx.size == 0:
-        res.ins_skipped = "no 60 s window of contiguous static held-out rows (records are shorter)"
-        return
-    win = pos[idx]
-    want = np.unique(win.ravel())
-    parts: list[dict[str, Any]] = []
-    for g0, a in aligned_chunks(source, records):
-        m = int(a["t"].size)
-        lo, hi = np.searchsorted(want, [g0, g0 + m])
-        if hi > lo:
-            parts.append(take_rows(a, want[lo:hi] - g0))
-    rows_a = join_arrays(parts)
-    del parts
-    local = np.searchsorted(want, win)
+def _ins(models: Mapping[str, Scored], rows_a: dict[str, Any], local: np.ndarray, res: SplitResult) -> None:
+    """`evaluation.ins_test` on the windows' rows `rows_a`, the windows `local` (W, n) indexing them."""
     flat = local.ravel()
     n = int(flat.size)
     # One model's outputs at a time, computed INS_CHUNK rows at a time: up to MAX_WINDOWS minutes of rows

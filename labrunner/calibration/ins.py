@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from .px4_reference import ValueCounts
 from .records import reference_values
 
 G0 = 9.80665  # m/s^2 per g
@@ -61,6 +62,122 @@ def windows(t: np.ndarray, labels: np.ndarray, window_s: float = DEFAULT_WINDOW_
     if w.shape[0] > max_windows:
         w = w[np.linspace(0, w.shape[0] - 1, max_windows).round().astype(np.int64)]
     return w
+
+
+# Consecutive intervals of a piece of `RowRuns` differ by at most this fraction (a store's times, t0 + k / rate
+# in float64, differ by a few ulps: 1e-8 of 20 ms at a week's t).
+PIECE_REL_TOL = 1e-6
+
+
+class RowRuns:
+    """The rows `windows` chooses from (times, labels, campaign positions, in order), met chunk by chunk
+    and held as pieces: consecutive positions of one label whose intervals are positive and alike, each
+    as (first index in the sequence, rows, first position, label, interval before it, smallest and largest
+    interval within), with the intervals' distinct values and counts for their median. Memory grows
+    with the pieces (records, dropped samples) and the distinct intervals, not with the rows.
+
+    `window_positions` gives `pos[windows(t, labels)]` of the rows added, or None when the pieces cannot
+    tell: a piece's intervals straddle the gap threshold (1.5 x the median interval), or a window is
+    one row; the caller then runs `windows` on the rows themselves."""
+
+    def __init__(self) -> None:
+        self.closed: list[np.ndarray] = []  # (k, 7) float rows of closed pieces, columns as _FIELDS
+        self.open: np.ndarray | None = None  # the last piece, still growing
+        self.last = (0.0, 0, 0)  # time, position, label of the last row
+        self.prev_dt = np.nan  # the last interval
+        self.n = 0
+        self.intervals = ValueCounts()
+
+    _FIELDS = ("first", "rows", "pos", "label", "dt_before", "dt_min", "dt_max")
+
+    def add(self, t: np.ndarray, labels: np.ndarray, pos: np.ndarray) -> None:
+        m = int(t.size)
+        if m == 0:
+            return
+        carried = self.open is not None
+        if carried:
+            t = np.concatenate([[self.last[0]], t])
+            pos = np.concatenate([[self.last[1]], pos])
+            labels = np.concatenate([[self.last[2]], labels])
+        t = np.asarray(t, dtype=float)
+        dt = np.diff(t)
+        self.intervals.add(dt[dt > 0])
+        before = np.concatenate([[self.prev_dt], dt[:-1]])
+        with np.errstate(invalid="ignore"):
+            cut = ((labels[1:] != labels[:-1]) | (pos[1:] != pos[:-1] + 1) | (dt <= 0)
+                   | (np.abs(dt - before) > PIECE_REL_TOL * before))
+        starts = np.concatenate([[0], np.flatnonzero(cut) + 1])
+        stops = np.append(starts[1:], t.size)
+        inner = np.append(np.where(cut, np.inf, dt), np.inf)  # a piece's inner intervals; cuts and the end: inf
+        dt_min = np.minimum.reduceat(inner, starts)
+        dt_max = np.maximum.reduceat(np.where(np.isinf(inner), -np.inf, inner), starts)
+        first = self.n - 1 + starts if carried else self.n + starts
+        dt_before = np.concatenate([[np.nan], dt[starts[1:] - 1]])
+        pieces = np.column_stack([first, stops - starts, pos[starts], labels[starts], dt_before, dt_min, dt_max]
+                                 ).astype(float)
+        if carried:
+            assert self.open is not None
+            head = pieces[0]
+            self.open[1] += head[1] - 1
+            self.open[5] = min(self.open[5], head[5])
+            self.open[6] = max(self.open[6], head[6])
+            pieces = pieces[1:]
+        if pieces.shape[0]:
+            if self.open is not None:
+                self.closed.append(self.open[None])
+            self.closed.append(pieces[:-1])
+            self.open = pieces[-1].copy()
+        self.n += m
+        self.last = (float(t[-1]), int(pos[-1]), int(labels[-1]))
+        if dt.size:
+            self.prev_dt = float(dt[-1])
+
+    def pieces(self) -> np.ndarray:
+        """(P, 7) the pieces so far (columns as _FIELDS)."""
+        parts = self.closed + ([self.open[None]] if self.open is not None else [])
+        return np.concatenate(parts) if parts else np.zeros((0, 7))
+
+    def window_positions(self, window_s: float = DEFAULT_WINDOW_S,
+                         max_windows: int = MAX_WINDOWS) -> np.ndarray | None:
+        """(W, n) positions of the windows `windows` chooses from the rows added (None: cannot tell)."""
+        if self.n < 2:
+            return np.zeros((0, 0), dtype=np.int64)
+        step = self.intervals.median() if self.intervals.n else 1.0
+        n = int(round(window_s / step))
+        gap = 1.5 * step
+        p = self.pieces()
+        first, rows, pos0, label = (p[:, i].astype(np.int64) for i in range(4))
+        dt_before, dt_min, dt_max = p[:, 4], p[:, 5], p[:, 6]
+        multi = rows >= 2
+        if n <= 1 or np.any(multi & (dt_min <= gap) & (dt_max > gap)):
+            return None
+        every = multi & (dt_min > gap)  # every interval within is a gap: the rows stand alone
+        brk = np.ones(p.shape[0], dtype=bool)
+        brk[1:] = (label[1:] != label[:-1]) | (dt_before[1:] > gap) | (dt_before[1:] <= 0)
+        runs: list[tuple[int, int, int]] = []  # `windows`' runs: (first index, rows, label)
+        cur, cur_rows, cur_label = 0, 0, 0
+        for i in range(p.shape[0]):  # pieces into runs (a few per record)
+            if brk[i] and cur_rows:
+                runs.append((cur, cur_rows, cur_label))
+                cur_rows = 0
+            if cur_rows == 0:
+                cur, cur_label = int(first[i]), int(label[i])
+            if every[i]:  # its first row ends the current run, its last starts the next (no window between)
+                runs.append((cur, cur_rows + 1, cur_label))
+                cur, cur_rows = int(first[i] + rows[i] - 1), 1
+            else:
+                cur_rows += int(rows[i])
+        if cur_rows:
+            runs.append((cur, cur_rows, cur_label))
+        starts = [s + k * n for s, r, lab in runs if lab >= 0 for k in range(r // n)]
+        if not starts:
+            return np.zeros((0, n), dtype=np.int64)
+        w = np.asarray(starts, dtype=np.int64)
+        if w.size > max_windows:
+            w = w[np.linspace(0, w.size - 1, max_windows).round().astype(np.int64)]
+        q = w[:, None] + np.arange(n)
+        k = np.searchsorted(first, q, side="right") - 1
+        return pos0[k] + (q - first[k])
 
 
 def _rodrigues(phi: np.ndarray) -> np.ndarray:

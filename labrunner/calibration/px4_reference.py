@@ -15,6 +15,7 @@ alike (see `evaluation.py`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import median_filter
@@ -105,3 +106,231 @@ def fit_px4(a: dict[str, np.ndarray], rows: np.ndarray) -> Px4Reference:
                 coef[k] = np.polyfit(tb, vb, ORDER)
         ref.fits[int(o)] = Px4Fit(t_ref_c=t_ref, t_min_c=t_min, t_max_c=t_max, coef=coef)
     return ref
+
+
+class ValueCounts:
+    """Distinct values and how often each occurred, merged chunk by chunk: `np.median` of all the values
+    exactly, in memory that grows with the distinct values only (a store's outputs are int16 counts times
+    an LSB, its times t0 + k / rate: few distinct values; a CSV's floats may all differ)."""
+
+    def __init__(self) -> None:
+        self.values = np.zeros(0)
+        self.counts = np.zeros(0, dtype=np.int64)
+
+    @property
+    def n(self) -> int:
+        return int(self.counts.sum())
+
+    def add(self, x: np.ndarray) -> None:
+        if x.size == 0:
+            return
+        v, c = np.unique(x, return_counts=True)
+        if self.values.size:
+            v, inv = np.unique(np.concatenate([self.values, v]), return_inverse=True)
+            c = np.bincount(inv, weights=np.concatenate([self.counts, c]), minlength=v.size).astype(np.int64)
+        self.values, self.counts = v, c
+
+    def median(self) -> float:
+        """`np.median` of the values counted: the middle one, or the mean of the middle two (NaN: none)."""
+        n = self.n
+        if n == 0:
+            return float("nan")
+        cum = np.cumsum(self.counts)
+        middle = self.values[np.searchsorted(cum, [(n - 1) // 2, n // 2], side="right")]
+        return float(np.median(middle[:1] if n % 2 else middle))
+
+
+HALF_WINDOW = MEDIAN_WINDOW // 2
+
+
+class _MedianStream:
+    """`median_filter(x, MEDIAN_WINDOW, mode="nearest")` of a series met chunk by chunk: the last inputs are
+    carried until their window is complete, so every output is the whole series' (the same element)."""
+
+    def __init__(self) -> None:
+        self.buf = np.zeros(0)
+        self.start = 0  # series index of buf[0]
+        self.done = 0  # outputs given so far
+
+    def add(self, x: np.ndarray) -> np.ndarray:
+        self.buf = np.concatenate([self.buf, x])
+        last = self.start + self.buf.size - HALF_WINDOW  # outputs before it have their whole window
+        if last <= self.done:
+            return np.zeros(0)
+        out = median_filter(self.buf, size=MEDIAN_WINDOW, mode="nearest")[self.done - self.start:last - self.start]
+        self.done = last
+        keep = max(self.start, last - HALF_WINDOW)  # the window of the next output; the series' start kept for its edge
+        self.buf = self.buf[keep - self.start:].copy()
+        self.start = keep
+        return out
+
+    def flush(self) -> np.ndarray:
+        """The last outputs (the series' end padded as `mode="nearest"` pads it)."""
+        if self.done == self.start + self.buf.size:
+            return np.zeros(0)
+        out = median_filter(self.buf, size=MEDIAN_WINDOW, mode="nearest")[self.done - self.start:]
+        self.done = self.start + self.buf.size
+        return out
+
+
+CELLS_PER_C = 4  # cells of a quarter degree: a cell's temperatures fall in at most two of the 1 C occupancy bins
+
+
+@dataclass
+class _Log:
+    """One orientation's static rows, met in time order, through the three passes `Px4Stream` makes."""
+
+    n: int = 0
+    t_min: float = np.inf
+    t_max: float = -np.inf
+    cells: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # floor(temp * CELLS_PER_C)
+    cell_min: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cell_max: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    filters: list[_MedianStream] = field(default_factory=list)
+    medians: list[ValueCounts] = field(default_factory=list)
+    median: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    t_ref: float = 0.0
+    lo: float = 0.0
+    width: float = 0.0
+    pending: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # bins of rows awaiting outputs
+    count: np.ndarray = field(default_factory=lambda: np.zeros(N_BINS, dtype=np.int64))
+    sum_tau: np.ndarray = field(default_factory=lambda: np.zeros(N_BINS))
+    sum_v: np.ndarray = field(default_factory=lambda: np.zeros((6, N_BINS)))
+
+    def add_range(self, temp: np.ndarray) -> None:
+        self.n += temp.size
+        self.t_min = min(self.t_min, float(temp.min()))
+        self.t_max = max(self.t_max, float(temp.max()))
+        keys, inv = np.unique(np.concatenate([self.cells, np.floor(temp * CELLS_PER_C).astype(np.int64)]),
+                              return_inverse=True)
+        lo, hi = np.full(keys.size, np.inf), np.full(keys.size, -np.inf)
+        np.minimum.at(lo, inv, np.concatenate([self.cell_min, temp]))
+        np.maximum.at(hi, inv, np.concatenate([self.cell_max, temp]))
+        self.cells, self.cell_min, self.cell_max = keys, lo, hi
+
+    def occupancy(self, n_bins: int) -> float:
+        """fit_px4's occupied fraction of the 1 C bins from t_min: the bin of a temperature is monotone in it,
+        so a cell's temperatures fall in the bins of its lowest and highest (at most two: a cell is narrower
+        than a bin)."""
+        def bins(x: np.ndarray) -> np.ndarray:
+            return np.minimum(((x - self.t_min) // 1.0).astype(np.int64), n_bins - 1)
+
+        b_lo, b_hi = bins(self.cell_min), bins(self.cell_max)
+        assert np.all(b_hi - b_lo <= 1), "a quarter-degree cell spans more than two 1 C bins"
+        return float(np.unique(np.concatenate([b_lo, b_hi])).size / n_bins)
+
+    def add_median(self, y: list[np.ndarray]) -> None:
+        for k in range(6):
+            self.medians[k].add(self.filters[k].add(y[k]))
+
+    def add_bins(self, temp: np.ndarray, y: list[np.ndarray]) -> None:
+        tau = temp - self.t_ref
+        idx = (np.clip(((tau - self.lo) / self.width).astype(np.int64), 0, N_BINS - 1) if self.width > 0
+               else np.zeros(tau.size, dtype=np.int64))
+        # np.add.at adds in row order onto the running sums: the sums np.bincount makes of all rows at once
+        self.count += np.bincount(idx, minlength=N_BINS)
+        np.add.at(self.sum_tau, idx, tau)
+        self.pending = np.concatenate([self.pending, idx])
+        self._add_outputs([f.add(v) for f, v in zip(self.filters, y)])
+
+    def end_bins(self) -> None:
+        self._add_outputs([f.flush() for f in self.filters])
+
+    def _add_outputs(self, v: list[np.ndarray]) -> None:
+        """The filtered outputs decided (they lag the inputs, alike in every channel) onto their rows' bins."""
+        m = v[0].size
+        for k in range(6):
+            np.add.at(self.sum_v[k], self.pending[:m], v[k] - self.median[k])
+        self.pending = self.pending[m:]
+
+
+class Px4Stream:
+    """`fit_px4` of rows met chunk by chunk in order (the concatenated rows' fit, bit for bit), in memory
+    that does not grow with the rows: per orientation a quarter-degree cell table, the distinct filtered
+    outputs and the 2000 bins' sums.
+
+    PX4's fit needs each orientation's temperature range before it bins and the median of the filtered
+    outputs before it sums their offsets per bin (sums in row order), so it takes up to three passes over
+    the rows: the range and the occupancy check (every orientation), then, for the orientations that pass
+    it (a sweep), the median of the filtered outputs, then the bins. `add` the rows of a pass, then
+    `end_pass`; `needs_pass` says whether another pass is wanted."""
+
+    def __init__(self) -> None:
+        self.stage = "range"  # then "median", "bins", "done"
+        self.logs: dict[int, _Log] = {}
+        self.ref = Px4Reference()
+
+    @property
+    def needs_pass(self) -> bool:
+        return self.stage != "done"
+
+    def add(self, a: dict[str, Any], rows: np.ndarray) -> None:
+        """The rows `rows` (a boolean mask over a chunk's campaign arrays `a`) of the current pass; like
+        `fit_px4`, only the static ones count."""
+        if self.stage == "done":
+            return
+        static = np.flatnonzero(rows & (np.abs(a["rate"]) < STATIC_RATE_DPS))
+        if static.size == 0:
+            return
+        orient = a["orientation"][static]
+        for o in np.unique(orient).tolist():
+            sel = static[orient == o]
+            if self.stage == "range":
+                self.logs.setdefault(o, _Log()).add_range(a["temp"][sel])
+                continue
+            log = self.logs.get(o)
+            if log is None:  # skipped after the range pass
+                continue
+            y = [a["y"][sel, k] for k in range(6)]
+            if self.stage == "median":
+                log.add_median(y)
+            else:
+                log.add_bins(a["temp"][sel], y)
+
+    def end_pass(self) -> None:
+        if self.stage == "range":
+            self._end_range()
+        elif self.stage == "median":
+            for log in self.logs.values():
+                for k in range(6):
+                    log.medians[k].add(log.filters[k].flush())
+                log.median = np.array([m.median() for m in log.medians])
+                log.medians = []
+                log.filters = [_MedianStream() for _ in range(6)]
+                hi = log.t_max - log.t_ref  # the largest tau (t -> t - t_ref is monotone), and `lo` the smallest
+                log.width = (hi - log.lo) / N_BINS
+            self.stage = "bins"
+        elif self.stage == "bins":
+            for o, log in sorted(self.logs.items()):
+                log.end_bins()
+                keep = log.count > 0
+                tb, cnt = log.sum_tau[keep] / log.count[keep], log.count[keep]
+                coef = np.zeros((6, ORDER + 1))
+                for k in range(6):
+                    if tb.size > ORDER:
+                        coef[k] = np.polyfit(tb, log.sum_v[k][keep] / cnt, ORDER)
+                self.ref.fits[o] = Px4Fit(t_ref_c=log.t_ref, t_min_c=log.t_min, t_max_c=log.t_max, coef=coef)
+            self.logs = {}
+            self.stage = "done"
+
+    def _end_range(self) -> None:
+        for o, log in sorted(self.logs.items()):
+            if log.n < MEDIAN_WINDOW or log.t_max - log.t_min <= 0:
+                self.ref.skipped[o] = 0.0
+                continue
+            n_bins = max(int(np.ceil(log.t_max - log.t_min)), 1)
+            occupied = log.occupancy(n_bins)
+            if occupied < MIN_SWEEP_OCCUPANCY:
+                self.ref.skipped[o] = occupied
+                continue
+            log.t_ref = 0.5 * (log.t_min + log.t_max)
+            log.lo = log.t_min - log.t_ref
+            log.filters = [_MedianStream() for _ in range(6)]
+            log.medians = [ValueCounts() for _ in range(6)]
+        self.logs = {o: log for o, log in self.logs.items() if o not in self.ref.skipped}
+        self.stage = "median" if self.logs else "done"
+
+    def result(self) -> Px4Reference:
+        if self.stage != "done":
+            raise RuntimeError(f"PX4's fit needs another pass over the rows (stage {self.stage})")
+        return self.ref

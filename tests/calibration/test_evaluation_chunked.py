@@ -105,7 +105,7 @@ def test_a_store_fitted_in_chunks_equals_its_whole_frame(tmp_path: Path) -> None
 
 def test_a_field_log_with_px4_fitted_equals_the_whole_frame_evaluation() -> None:
     """A static 1 Hz log of slow ramps (no soaks): PX4's reference is fitted on every split's static
-    training rows, gathered chunk by chunk; time_blocks runs with its per-run offsets."""
+    training rows, streamed chunk by chunk (`Px4Stream`); time_blocks runs with its per-run offsets."""
     from field_logs import field_log
 
     frame, _ = field_log(seed=1, hours_per_run=4.0)
@@ -113,9 +113,56 @@ def test_a_field_log_with_px4_fitted_equals_the_whole_frame_evaluation() -> None
     assert any("px4" in r.samples for r in whole)
     records = segment_chunks(frame_chunks(frame, 3001), OPTIONS.records)
     steps = fit_models(records, OPTIONS).steps
-    chunked = evaluate_chunks(lambda: frame_chunks(frame, 3001), len(frame), records, steps,
+    passes: list[int] = []
+    chunked = evaluate_chunks(_counted(frame, 3001, passes), len(frame), records, steps,
                               lambda tr: fit_models(tr, OPTIONS).compensators(), OPTIONS.splits,
                               OPTIONS.holdout_fraction, OPTIONS.eval_max_rows, OPTIONS.seed)
+    assert len(passes) == 4  # PX4's sweeps: their filtered outputs' median, then their bins
+    assert _dicts(chunked) == _dicts(whole)
+
+
+def _counted(frame: pd.DataFrame, rows: int, passes: list[int]):
+    def source():
+        passes.append(1)
+        return frame_chunks(frame, rows)
+    return source
+
+
+def test_the_splits_share_two_passes_and_score_in_the_batches_score_takes(campaign: pd.DataFrame,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 15: every split's models' data in one pass, every split's scores in a second (PX4 finds no
+    sweep in soaks); the held-out rows scored as they stream past in batches of SCORE_CHUNK (here cut
+    anywhere within the chunks), the same sums as `score` of the rows gathered whole."""
+    monkeypatch.setattr(ev, "OFFSET_MAX_ROWS", 3000)
+    monkeypatch.setattr(ev, "SCORE_CHUNK", 1237)
+    _, whole = _whole(campaign, OPTIONS)
+    assert all(r.px4_skipped for r in whole)
+    records = segment_chunks(frame_chunks(campaign, 4099), OPTIONS.records)
+    steps = fit_models(records, OPTIONS).steps
+    passes: list[int] = []
+    chunked = evaluate_chunks(_counted(campaign, 4099, passes), len(campaign), records, steps,
+                              lambda tr: fit_models(tr, OPTIONS).compensators(), OPTIONS.splits,
+                              OPTIONS.holdout_fraction, OPTIONS.eval_max_rows, OPTIONS.seed)
+    assert len(passes) == 2
+    assert _dicts(chunked) == _dicts(whole)
+
+
+def test_ins_windows_from_the_rows_when_the_pieces_cannot_tell(campaign: pd.DataFrame,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fallback: INS candidates whose pieces cannot tell where a gap is are gathered in a further pass
+    and `windows` chooses from them: the same windows and errors."""
+    from labrunner.calibration.ins import RowRuns
+
+    _, whole = _whole(campaign, OPTIONS)
+    monkeypatch.setattr(RowRuns, "window_positions", lambda self, *args: None)
+    records = segment_chunks(frame_chunks(campaign, 4099), OPTIONS.records)
+    steps = fit_models(records, OPTIONS).steps
+    passes: list[int] = []
+    chunked = evaluate_chunks(_counted(campaign, 4099, passes), len(campaign), records, steps,
+                              lambda tr: fit_models(tr, OPTIONS).compensators(), OPTIONS.splits,
+                              OPTIONS.holdout_fraction, OPTIONS.eval_max_rows, OPTIONS.seed)
+    assert len(passes) == 3
+    assert sum(bool(r.ins) for r in chunked) >= 2
     assert _dicts(chunked) == _dicts(whole)
 
 

@@ -57,3 +57,65 @@ def test_compensate_ins_option_on_a_csv(cubic_campaign, tmp_path: Path, capsys) 
     assert main(["compensate", str(tmp_path / "fit" / "polynomial.json"), str(csv), "--csv",
                  str(tmp_path / "o2.csv"), "--ins", "-5"]) == 2
     assert "--ins must be a positive number" in capsys.readouterr().err
+
+
+def _static_sequence(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Times, records and static flags of a campaign's rows: 50 Hz records (one at 100 Hz) at store-like
+    times, dropped samples, rotating rows inside records, a repeated time, gaps and back-to-back records."""
+    t, lab, static = [], [], []
+    t0 = 1e5
+    for r in range(24):
+        rate = 100.0 if r % 7 == 3 else 50.0
+        tt = t0 + np.arange(int(rng.integers(500, 9000))) / rate
+        tt = tt[rng.random(tt.size) > 0.001]
+        st = np.ones(tt.size, dtype=bool)
+        if r % 5 == 1:
+            st[rng.integers(0, tt.size, 3)] = False
+        if r % 9 == 2:
+            tt[100] = tt[99]
+        t.append(tt), lab.append(np.full(tt.size, r)), static.append(st)
+        t0 = tt[-1] + (0.02 if r % 4 == 0 else rng.uniform(1, 100))
+    return np.concatenate(t), np.concatenate(lab), np.concatenate(static)
+
+
+def test_row_runs_choose_the_windows_windows_chooses() -> None:
+    """Issue 15: the INS windows chosen from pieces of the static held-out rows, met chunk by chunk, are
+    `windows`' on the rows themselves (as campaign positions), for chunks of one row upwards."""
+    from labrunner.calibration.ins import RowRuns, windows
+
+    rng = np.random.default_rng(1)
+    checked = 0
+    for trial in range(6):
+        t, lab, static = _static_sequence(rng)
+        sel = np.flatnonzero(static & (lab % 3 != 0))  # held-out records' static rows
+        idx = windows(t[sel], lab[sel], max_windows=40 if trial % 2 else 400)
+        assert idx.size
+        want = sel[idx]
+        for size in ((1, 333) if trial == 0 else (17, 4096, sel.size)):
+            runs = RowRuns()
+            for lo in range(0, sel.size, size):
+                s = sel[lo:lo + size]
+                runs.add(t[s], lab[s], s)
+            assert len(runs.pieces()) < sel.size / 100  # a few per record
+            got = runs.window_positions(max_windows=40 if trial % 2 else 400)
+            assert got is not None
+            np.testing.assert_array_equal(got, want)
+            checked += 1
+    assert checked == 17
+
+
+def test_row_runs_without_windows_and_when_they_cannot_tell() -> None:
+    from labrunner.calibration.ins import RowRuns, windows
+
+    runs = RowRuns()
+    runs.add(np.arange(100) * 0.02, np.zeros(100, dtype=np.int64), np.arange(100))
+    assert windows(np.arange(100) * 0.02, np.zeros(100)).size == 0
+    got = runs.window_positions()
+    assert got is not None and got.size == 0
+    # A stretch of intervals within the pieces' tolerance of 1.5 x the median interval, some above it and
+    # some not: the pieces cannot tell where `windows` breaks (None: the caller gives it the rows).
+    dt = np.concatenate([np.full(5000, 0.02), 1.5 * 0.02 * (1 + 1e-8 * np.sin(np.arange(2000)))])
+    t = np.concatenate([[0.0], np.cumsum(dt)])
+    runs = RowRuns()
+    runs.add(t, np.zeros(t.size, dtype=np.int64), np.arange(t.size))
+    assert runs.window_positions() is None
