@@ -219,7 +219,7 @@ def simulated_lab(*, max_rate_dps: float, sim_config: Any = None, start_t: float
     if orientation is not None:
         cfg = dataclasses.replace(cfg, orientation=orientation)
     clock = VirtualClock(start=start_t)
-    sim = SimLab(cfg, clock, link=link)
+    sim = SimLab(cfg, clock, link=link, imu_on_demand=True)
     config = lab_config_from_dict(sim.lab_config(), "simulated lab")
     chamber, table, imu = build_drivers(config, clock, max_rate_dps=max_rate_dps, on_retry=on_retry,
                                         on_event=on_event)

@@ -3,9 +3,15 @@
 
 Frames exist for every sample time t_on + k / rate up to the clock's time while the
 IMU is powered; `emit_until(t)` sends the ones not sent yet. With a virtual clock it
-is a clock listener (called in the sleeping thread, so a dry run is deterministic);
+is a clock listener (`on_clock`, called in the sleeping thread, so a dry run is deterministic);
 with a wall or scaled clock a ticker thread calls it. Faults: stalls, corrupt bursts,
 frame-counter gaps, and the link dropping (see `ImuFaults`).
+
+On demand (`make_on_demand`, a dry run's line inside the process that only the driver's own reads
+empty): the listener only notes the time the frames are due up to, and they are made and sent when the
+driver reads the line (`flush`), or before anything changes what they would be (a table command, a
+remount, a fault: `SimLab` flushes first). The bytes are the same, sent in fewer, larger chunks (a
+record is one chunk, not one per poll: each chunk has a fixed cost of ~0.3 ms).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from .world import SimWorld
 log = logging.getLogger(__name__)
 
 MAX_CHUNK_S = 60.0  # generate long sleeps in pieces to bound memory
+ON_DEMAND_MAX_CHUNK_S = 600.0  # frames made on demand: pieces of up to this (a few MB)
 # Wire formats a sim configuration may ask for (`imu_format`), and the lab driver that reads each.
 IMU_FORMATS: dict[str, FrameCodec] = {"labrunner_frame": LABRUNNER_FRAME, "xsens_mti": XBUS}
 IMU_DRIVERS = {"labrunner_frame": None, "xsens_mti": "xsens_mti"}  # None: the lab's default IMU driver
@@ -60,6 +67,56 @@ class ImuStreamSim:
         self._lock = threading.Lock()
         self._ticker: threading.Thread | None = None
         self._stop = threading.Event()
+        self.on_demand = False
+        self._dues: list[float] = []  # on demand: the clock's advances since frames were last made
+
+    def on_clock(self, t: float) -> None:
+        """The clock's listener: send the frames up to t, or (on demand) note that they are due."""
+        if self.on_demand:
+            self._dues.append(t)
+        else:
+            self.emit_until(t)
+
+    def make_on_demand(self) -> None:
+        """Make frames when the driver reads the line (the port's `on_read`), not at each clock advance."""
+        self.on_demand = True
+        self.port.on_read = self.flush  # type: ignore[attr-defined]  # a MemoryPort
+
+    def flush(self) -> None:
+        """Make and send the frames due so far (on demand; nothing if none is due): those the listener would
+        have sent at the advances since the last flush, with what it would have seen then (`_horizons`)."""
+        dues, self._dues = self._dues, []
+        if not dues:
+            return
+        with self._lock:
+            while True:
+                chunk = self._next_chunk(dues[-1], dues)
+                if chunk is None:
+                    return
+                self._send(*chunk)
+
+    def stop_on_demand(self) -> None:
+        """Send what is due, then send at every clock advance again (before a fault changes the stream)."""
+        if self.on_demand:
+            self.flush()
+            self.on_demand = False
+            self.port.on_read = None  # type: ignore[attr-defined]
+
+    def _horizons(self, ks: np.ndarray, dues: list[float]) -> np.ndarray:
+        """For frames `ks` made on demand, the sample time of the last frame of the chunk the listener would
+        have sent each in (one per advance in `dues`, split at MAX_CHUNK_S): the world's temperature history
+        then ended at the grid step at or before it, and the frames after that step held its value."""
+        w = self.world
+        per = int(MAX_CHUNK_S * self.rate_hz)
+        ends = np.empty(ks.size, dtype=np.int64)
+        pos, first, last = int(ks[0]), int(ks[0]), int(ks[-1])
+        for d in dues:
+            kd = min(math.floor((d - w.t_on) * self.rate_hz + 1e-9), last)
+            while pos <= kd:
+                end = min(kd, pos + per - 1)
+                ends[pos - first:end - first + 1] = end
+                pos = end + 1
+        return w.t_on + ends / self.rate_hz
 
     def emit_until(self, t: float) -> None:
         """Send all frames with sample time <= t that have not been sent."""
@@ -70,7 +127,7 @@ class ImuStreamSim:
                     return
                 self._send(*chunk)
 
-    def _next_chunk(self, t: float) -> tuple[np.ndarray, bytes] | None:
+    def _next_chunk(self, t: float, dues: list[float] | None = None) -> tuple[np.ndarray, bytes] | None:
         w = self.world
         with w.lock:
             if w.run != self._run:  # power-cycled: the counter starts again
@@ -83,11 +140,13 @@ class ImuStreamSim:
             k_last = math.floor((t - w.t_on) * self.rate_hz + 1e-9)
             if k_last < self._next_k:
                 return None
-            k_last = min(k_last, self._next_k + int(MAX_CHUNK_S * self.rate_hz) - 1)
+            per = int((ON_DEMAND_MAX_CHUNK_S if dues is not None else MAX_CHUNK_S) * self.rate_hz)
+            k_last = min(k_last, self._next_k + per - 1)
             ks = np.arange(self._next_k, k_last + 1)
             times = w.t_on + ks / self.rate_hz
             w.advance(float(times[-1]))
-            inputs = w.imu_inputs(times)
+            inputs = w.imu_inputs(times) if dues is None else \
+                w.imu_inputs(times, history_until=self._horizons(ks, dues))
             out, self.state = w.model.simulate(inputs, self.rate_hz, self._rng, self.state)
             self._next_k = k_last + 1
         return ks, self.codec.encode(ks, out[:, :3], out[:, 3:], inputs.temp_c, t_s=inputs.t_on_s)

@@ -45,7 +45,7 @@ class SimLab:
 
     def __init__(self, config: SimLabConfig, clock: Clock, *, host: str = "127.0.0.1", link: str = "tcp",
                  chamber_transport: str = "tcp", chamber_profile: str = "watlow_f4",
-                 ports: SimPorts = SimPorts()) -> None:
+                 ports: SimPorts = SimPorts(), imu_on_demand: bool = False) -> None:
         if link not in LINKS:
             raise ValueError(f"sim link must be one of {', '.join(LINKS)}, got {link!r}")
         if link == "memory" and not isinstance(clock, VirtualClock):
@@ -76,9 +76,14 @@ class SimLab:
         self.imu = ImuStreamSim(self.world, clock, self.imu_port, rate_hz=config.imu_rate_hz, seed=config.seed,
                                 codec=IMU_FORMATS[config.imu_format])
         if isinstance(clock, VirtualClock):
-            clock.add_listener(self.imu.emit_until)
+            clock.add_listener(self.imu.on_clock)
         else:
             self.imu.start_ticker()
+        if imu_on_demand and link == "memory":
+            # Frames made when the driver reads its line (or before a command, remount or fault changes
+            # them), not at every advance: the same bytes in fewer chunks (`ImuStreamSim.make_on_demand`).
+            self.imu.make_on_demand()
+            self.table.before_command = self.imu.flush
         # The drivers' waits on these links are decided in virtual time (labrunner.clock.io_timeouts).
         self._virtual_links = [self.chamber.url, self.table_port.url, self.imu_port.url] if virtual else []
         for url in self._virtual_links:
@@ -107,22 +112,27 @@ class SimLab:
 
     def apply_fault(self, kind: FaultKind | str, *, duration_s: float = 0.0, count: int = 0) -> None:
         """Start a fault now (see `labrunner.fault_kinds.FaultKind`); unknown kinds are a ValueError."""
+        self.imu.stop_on_demand()  # faults act on the stream as it is sent at each advance
         self._faults.apply(kind, duration_s=duration_s, count=count)
 
     def clear_fault(self, kind: FaultKind | str) -> None:
         """End a fault now."""
+        self.imu.stop_on_demand()
         self._faults.clear(kind)
 
     # --- what the dry run's operator and barrier need -----------------------------------------
 
     def power_off(self) -> None:
         """The IMU loses power (the operator opened the door to remount it)."""
+        self.imu.flush()
         self.world.power_off()
 
     def settle_imu(self, imu: object) -> None:
         """A dry run's barrier, after each clock advance: wait until the IMU driver has read every byte the
         simulated IMU put on the line (frames, corrupt ones too), so what it parsed does not depend on
         how fast the machine is. Drivers without `wait_received` (not a stream reader) are left alone."""
+        if self.imu.on_demand:  # the driver's reads take the frames: nothing was sent unread
+            return
         wait = getattr(imu, "wait_received", None)
         if wait is not None and getattr(imu, "streaming", False):
             if not wait(self.imu_port.bytes_written, SAFETY_NET_S):
@@ -161,6 +171,7 @@ class SimLab:
 
     def remount(self, orientation: str) -> None:
         """What the operator does at a mounting prompt: power down, turn the IMU, power up."""
+        self.imu.flush()
         self.world.remount(orientation, self.clock.now())
 
     @property
@@ -171,13 +182,14 @@ class SimLab:
     def restore(self, *, orientation: str, air_c: float, setpoint_c: float, powered_since: float, run: int,
                 imu_c: float | None = None) -> None:
         """A resumed dry run's lab as the last session left it (`SimWorld.restore`)."""
+        self.imu.flush()
         self.world.restore(orientation=orientation, air_c=air_c, setpoint_c=setpoint_c, powered_since=powered_since,
                            run=run, imu_c=imu_c)
 
     def close(self) -> None:
         log.debug("simulated lab closing")
         if isinstance(self.clock, VirtualClock):
-            self.clock.remove_listener(self.imu.emit_until)
+            self.clock.remove_listener(self.imu.on_clock)
         self.imu.close()
         self.table.close()
         self.chamber.close()

@@ -324,6 +324,8 @@ class MemoryPort(_ClientSlot):
         self._refusing = False
         self._client: MemoryEnd | None = None
         self._server: Callable[[bytes], None] | None = None
+        # Called before the driver's end is read (an IMU that makes its frames on demand sends them then).
+        self.on_read: Callable[[], None] | None = None
 
     @classmethod
     def lookup(cls, url: str) -> MemoryPort | None:
@@ -419,8 +421,15 @@ class MemoryEnd:
             raise ConnectionResetError(f"{self.port.url}: {self.lost}")
         self.port.from_driver(self, data)
 
+    def _pull(self) -> None:
+        """What the port's sender has due comes now (`MemoryPort.on_read`), before the driver reads."""
+        pull = self.port.on_read
+        if pull is not None and self.lost is None and self.port._client is self:
+            pull()
+
     @property
     def waiting(self) -> int:
+        self._pull()
         return len(self._buf)
 
     def clear(self) -> None:
@@ -430,6 +439,7 @@ class MemoryEnd:
     def take(self, size: int, timeout: float | None, until: bytes | None = None) -> bytes:
         """Up to `size` bytes (through `until` when given), waiting up to `timeout` real seconds for them
         (None: until they come). A lost line gives what was sent before it, then raises ConnectionResetError."""
+        self._pull()
         end = None if timeout is None else time.monotonic() + timeout
         with self._cond:
             while True:

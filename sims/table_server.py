@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import random
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from labrunner.clock import Clock, io_timeouts
@@ -58,6 +59,8 @@ class TableServer:
         self._stop = threading.Event()
         self._buf = b""
         self._thread: threading.Thread | None = None
+        # Called before a command changes the rate (an IMU making its frames on demand sends the ones due).
+        self.before_command: Callable[[], None] | None = None
         if isinstance(port, MemoryPort):  # a dry run's line inside the process: answered in the driver's thread
             port.attach_server(self.receive)
         else:
@@ -120,6 +123,8 @@ class TableServer:
         lang = self.language
         table = self.world.table
         ack = lang.ack.format()
+        if operation in ("stop", "home", "jog") and self.before_command is not None:
+            self.before_command()
         with self.world.lock:
             # The time is read under the world's lock: the IMU stream (a ticker thread on a served clock)
             # generates its frames under it too, so no frame is timed after a command yet made before it

@@ -168,15 +168,23 @@ class SimWorld:
         self._hist[self._n:self._n + len(rows)] = rows
         self._n += len(rows)
 
-    def _history(self, times: np.ndarray, column: int) -> np.ndarray:
-        """Interpolate a history column at times (only the stretch of history they span)."""
+    def _history(self, times: np.ndarray, column: int, until: np.ndarray | None = None) -> np.ndarray:
+        """Interpolate a history column at times (only the stretch of history they span). With `until` (per
+        time), the history as it was when it ended at the last grid step at or before until + 1e-9 (as
+        `advance(until)` left it): a time after that step has its value, as np.interp holds the last one."""
         times = np.asarray(times, dtype=float)
         if times.size == 0:
             return np.empty(0)
         ht = self._hist[: self._n, 0]
         lo = max(int(np.searchsorted(ht, times.min(), side="right")) - 1, 0)
         hi = min(int(np.searchsorted(ht, times.max(), side="left")) + 1, self._n)
-        return np.interp(times, ht[lo:hi], self._hist[lo:hi, column])
+        out = np.interp(times, ht[lo:hi], self._hist[lo:hi, column])
+        if until is not None:
+            last = np.searchsorted(ht, until + 1e-9, side="right") - 1  # the grid step advance(until) ended at
+            after = times > ht[last]
+            if after.any():
+                out[after] = self._hist[last[after], column]
+        return out
 
     # --- what the IMU sees ------------------------------------------------------------
 
@@ -184,10 +192,11 @@ class SimWorld:
         with self.lock:
             return self._history(times, 2)
 
-    def imu_temperature_at(self, times: np.ndarray) -> np.ndarray:
-        """Die temperature (what the IMU's sensor reads) at times within the history."""
+    def imu_temperature_at(self, times: np.ndarray, history_until: np.ndarray | None = None) -> np.ndarray:
+        """Die temperature (what the IMU's sensor reads) at times within the history (as it was when it ended
+        at `history_until`, per time: `_history`)."""
         with self.lock:
-            case = self._history(times, 1)
+            case = self._history(times, 1, history_until)
             if not self.powered:
                 return case
             # case + extra + self_heat * (1 - exp(-since_on / tau)), in place in that order
@@ -201,7 +210,7 @@ class SimWorld:
             case += heat
             return case
 
-    def imu_inputs(self, times: np.ndarray) -> ImuInputs:
+    def imu_inputs(self, times: np.ndarray, history_until: np.ndarray | None = None) -> ImuInputs:
         times = np.asarray(times, dtype=float)
         n = times.size
         up = up_vector(self.orientation)
@@ -210,7 +219,7 @@ class SimWorld:
             t_s=times,
             run=np.full(n, self.run, dtype=np.int64),
             t_on_s=times - self.t_on,
-            temp_c=self.imu_temperature_at(times),
+            temp_c=self.imu_temperature_at(times, history_until),
             force_g=np.tile(up, (n, 1)),
             rate_dps=rate[:, None] * up[None, :],
         )

@@ -118,3 +118,82 @@ def test_a_record_cut_from_in_order_chunks_equals_the_frames_masked() -> None:
     finally:
         drv.close()
         port.close()
+
+
+def _dry_session(on_demand: bool) -> tuple[bytes, np.ndarray, list[np.ndarray]]:
+    """A dry run's lab (memory links, virtual clock, the real drivers) through soaks, jogs, records at
+    uneven times, a remount and then a fault: the IMU's bytes on the line, the model's outputs before
+    rounding, and what the driver's records held."""
+    import dataclasses
+
+    from labrunner.clock import VirtualClock
+    from labrunner.fault_kinds import FaultKind
+    from labrunner.lab import build_drivers, lab_config_from_dict
+    from labrunner.sims.lab import SimLab
+    from labrunner.sims.world import SimLabConfig
+
+    clock = VirtualClock(start=1000.0)
+    sim = SimLab(dataclasses.replace(SimLabConfig(seed=7), orientation="x_up"), clock, link="memory",
+                 imu_on_demand=on_demand)
+    chamber, table, imu = build_drivers(lab_config_from_dict(sim.lab_config()), clock, max_rate_dps=150.0)
+    clock.add_barrier(lambda: sim.settle_imu(imu))
+    sent: list[bytes] = []
+    write = sim.imu_port.write
+    sim.imu_port.write = lambda data: (sent.append(bytes(data)), write(data))[1]  # type: ignore[method-assign]
+    outs: list[np.ndarray] = []
+    model = sim.world.model
+    simulate = model.simulate
+
+    def tap(*args, **kwargs):  # type: ignore[no-untyped-def]
+        out, state = simulate(*args, **kwargs)
+        outs.append(out.copy())
+        return out, state
+
+    model.simulate = tap  # type: ignore[method-assign]
+    records = []
+    try:
+        for c in (chamber, table, imu):
+            c.connect()
+        chamber.set_setpoint(40.0)
+        for k, rate in enumerate([0.0, 25.0, -60.0, 100.0]):
+            for _ in range(3):  # a soak's polls, each a monitor stretch
+                start = imu.begin_record()
+                clock.sleep(30.0 + 0.37 * k)
+                chamber.read_temperature()
+                records.append(imu.end_record(start, 1500, 0.0).gyro_dps)
+                imu.latest()
+            table.jog(rate)
+            for _ in range(7):
+                table.status()
+                clock.sleep(0.5)
+            clock.sleep(5.0)
+            start = imu.begin_record()
+            for _ in range(3):
+                clock.sleep(20.0 + 0.013 * k)
+                chamber.read_temperature()
+                table.velocity()
+            records.append(imu.end_record(start, 3000, 0.0).accel_g)
+            if k == 1:
+                sim.power_off()
+                clock.sleep(300.0)
+                sim.remount("y_down")
+                imu.restart_stream()
+        sim.apply_fault(FaultKind.IMU_CORRUPT, count=40)
+        start = imu.begin_record()
+        clock.sleep(20.0)
+        records.append(imu.end_record(start, 1000, 0.0).temp_c)
+    finally:
+        for c in (imu, table, chamber):
+            c.close()
+        sim.close()
+    return b"".join(sent), np.concatenate(outs), records
+
+
+def test_frames_made_on_demand_equal_frames_sent_at_every_advance() -> None:
+    eager_bytes, eager_out, eager_records = _dry_session(on_demand=False)
+    lazy_bytes, lazy_out, lazy_records = _dry_session(on_demand=True)
+    assert len(eager_bytes) > 400_000 and eager_bytes == lazy_bytes
+    assert np.array_equal(eager_out, lazy_out)  # the model's outputs, bit for bit, before rounding
+    assert len(eager_records) == len(lazy_records) == 17
+    for a, b in zip(eager_records, lazy_records, strict=True):
+        assert np.array_equal(a, b)
