@@ -287,11 +287,12 @@ def _passes(source: RowSource, records: Records, n_rows: int, splits: list[_Spli
 def _count_held(rng: np.random.Generator, records: Records, n_rows: int, fraction: float) -> int:
     """The random split's held-out rows within records: its draw (advancing `rng` as the draw of every row does)."""
     n = 0
-    for lo in range(0, n_rows, DRAW_CHUNK):
+    for lo in range(0, n_rows, DRAW_CHUNK):  # chunks cut anywhere: records' ranges clipped to them
         m = min(DRAW_CHUNK, n_rows - lo)
-        held = rng.random(m) < fraction
-        lab, _ = _labels(records, lo, m)
-        n += int(np.count_nonzero(held & (lab >= 0)))
+        held = np.concatenate([[0], np.cumsum(rng.random(m) < fraction)])
+        a = np.clip(records.row_start - lo, 0, m)
+        b = np.clip(records.row_stop - lo, 0, m)
+        n += int((held[b] - held[a]).sum())
     return n
 
 

@@ -133,8 +133,11 @@ def test_the_splits_share_two_passes_and_score_in_the_batches_score_takes(campai
     """Issue 15: every split's models' data in one pass, every split's scores in a second (PX4 finds no
     sweep in soaks); the held-out rows scored as they stream past in batches of SCORE_CHUNK (here cut
     anywhere within the chunks), the same sums as `score` of the rows gathered whole."""
+    from labrunner.calibration import evaluation_chunked as ec
+
     monkeypatch.setattr(ev, "OFFSET_MAX_ROWS", 3000)
     monkeypatch.setattr(ev, "SCORE_CHUNK", 1237)
+    monkeypatch.setattr(ec, "DRAW_CHUNK", 1009)  # the random split's held-out rows counted in chunks cutting records
     _, whole = _whole(campaign, OPTIONS)
     assert all(r.px4_skipped for r in whole)
     records = segment_chunks(frame_chunks(campaign, 4099), OPTIONS.records)
