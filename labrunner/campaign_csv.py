@@ -25,7 +25,7 @@ from labrunner.domain import CSV_COLUMNS as COLUMNS
 from labrunner.errors import UserError
 
 if TYPE_CHECKING:
-    from labrunner.store import SampleBlock, Store
+    from labrunner.store import Store, StoredBlock
 
 log = logging.getLogger(__name__)
 
@@ -293,7 +293,7 @@ def _read_typed(path: Path, label: str) -> pd.DataFrame | None:
 # once, the other numbers by one '%' each, and a chunk's cells joined in one `str.join`.
 
 _EOL = "\n"
-CHUNK_ROWS = 1 << 16  # rows formatted at a time: bounds the writer's memory whatever a block holds
+CHUNK_ROWS = 1 << 11  # rows decoded and formatted at a time: bounds the writer's memory whatever a block holds
 _I16 = 1 << 15
 
 
@@ -399,17 +399,6 @@ class RowFormatter:
         return table[index]
 
 
-def quantised(values: np.ndarray, lsb: float | None) -> np.ndarray | Quantised:
-    """`values` as whole counts of `lsb` when they are exactly that (an int16 block's decoded samples),
-    else the values themselves (formatted one by one)."""
-    if lsb is None or values.size == 0:
-        return values
-    counts = np.rint(values / lsb)
-    if np.abs(counts).max() >= _I16 or not np.array_equal(counts * lsb, values):
-        return values
-    return Quantised(counts.astype(np.int64), lsb)
-
-
 def rows_text(rows: np.ndarray) -> str:
     return "".join(rows.ravel().tolist())
 
@@ -497,18 +486,19 @@ def export_campaign(store: Store, campaign_id: int, out: str | Path | TextIO, *,
         raise UserError(f"{store.path}: campaign {campaign_id} has no recorded samples to export")
     if target is None:
         assert not isinstance(out, str | Path)
-        return write_blocks(store.blocks(campaign_id, kinds), out, time_order=include_monitor)
+        return write_blocks(store.stored_blocks(campaign_id, kinds), out, time_order=include_monitor)
     with _output(target) as f:
-        return write_blocks(store.blocks(campaign_id, kinds), f, time_order=include_monitor)
+        return write_blocks(store.stored_blocks(campaign_id, kinds), f, time_order=include_monitor)
 
 
-def write_blocks(blocks: Iterable[SampleBlock], out: TextIO, *, time_order: bool = False) -> int:
-    """Write sample blocks as campaign CSV, header first; returns the rows written.
+def write_blocks(blocks: Iterable[StoredBlock], out: TextIO, *, time_order: bool = False) -> int:
+    """Write stored sample blocks as campaign CSV, header first; returns the rows written.
 
     Rows come out in the blocks' order, or with `time_order` (records and monitor rows together) in
     time order as a stable sort of them all would give (ties in block order). That merge holds back
     only the rows later than the next block's start: the blocks come in start-time order and a block's
-    samples do not precede its start (its counters ascend)."""
+    samples do not precede its start (its counters ascend). A block is decoded `CHUNK_ROWS` rows at a
+    time, so memory does not grow with the length of a block."""
     fmt = RowFormatter()
     out.write(",".join(quote_cell(c) for c in COLUMNS) + _EOL)
     written = 0
@@ -516,7 +506,7 @@ def write_blocks(blocks: Iterable[SampleBlock], out: TextIO, *, time_order: bool
     ahead = iter(b for b in blocks if len(b))
     b = next(ahead, None)
     while b is not None:
-        following = next(ahead, None)  # decoded one block early: its start bounds every later row
+        following = next(ahead, None)  # read one block early: its start bounds every later row
         later = following.t0_s if following is not None else np.inf
         for t, rows, rest in _chunks(b, fmt):
             if not time_order:
@@ -541,25 +531,40 @@ def write_blocks(blocks: Iterable[SampleBlock], out: TextIO, *, time_order: bool
     return written
 
 
-def _chunks(b: SampleBlock, fmt: RowFormatter) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
+_SAMPLE_COLUMNS = (("accel_g", 0), ("gyro_dps", 1))  # (n, 3) blobs and their LSB's place
+
+
+def _chunks(b: StoredBlock, fmt: RowFormatter) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
     """A block's times and formatted rows `CHUNK_ROWS` at a time, with the time its next chunk starts at
     (inf for the last); chamber and table readings interpolated to the sample times as
-    `Store.samples_frame` does."""
+    `Store.samples_frame` does (point by point: a chunk's values are the whole block's)."""
     from labrunner.store import interp_readings
 
-    t_all = b.times()
     run, orientation = str(b.run), quote_cell(b.orientation)
-    chamber = interp_readings(t_all, b.chamber)
-    table = interp_readings(t_all, b.table, default=0.0)
-    lsb = b.lsb or (None, None, None)
-    for lo in range(0, len(b), CHUNK_ROWS):
-        hi = min(lo + CHUNK_ROWS, len(b))
-        sl = slice(lo, hi)
-        t = t_all[sl]
-        cells: list[Cells] = [t, run, orientation, chamber[sl], quantised(b.temp_c[sl], lsb[2]), table[sl]]
-        cells += [quantised(b.accel_g[sl, j], lsb[0]) for j in range(3)]
-        cells += [quantised(b.gyro_dps[sl, j], lsb[1]) for j in range(3)]
-        yield t, fmt.rows(cells, t.size), float(t_all[hi]) if hi < len(b) else np.inf
+    n = len(b)
+    for lo in range(0, n, CHUNK_ROWS):
+        hi = min(lo + CHUNK_ROWS, n)
+        t = b.times(lo, hi)
+        cells: list[Cells] = [t, run, orientation, interp_readings(t, b.chamber), _samples(b, "temp_c", 2, lo, hi),
+                              interp_readings(t, b.table, default=0.0)]
+        for column, which in _SAMPLE_COLUMNS:
+            block = _samples(b, column, which, lo, hi)
+            cells += [_column(block, j) for j in range(3)]
+        yield t, fmt.rows(cells, t.size), float(b.times(hi, hi + 1)[0]) if hi < n else np.inf
+
+
+def _samples(b: StoredBlock, column: str, which: int, lo: int, hi: int) -> np.ndarray | Quantised:
+    """Rows lo:hi of a block's samples: an int16 block's counts as they are stored (their cells are
+    those of the decoded values, counts x LSB, from the formatter's table), else the float values."""
+    if b.lsb is None:
+        return b.values(column, lo, hi)
+    return Quantised(b.counts(column, lo, hi), b.lsb[which])
+
+
+def _column(samples: np.ndarray | Quantised, j: int) -> np.ndarray | Quantised:
+    if isinstance(samples, Quantised):
+        return Quantised(samples.counts[:, j], samples.lsb)
+    return samples[:, j]
 
 
 def _merge(runs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:

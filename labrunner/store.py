@@ -337,6 +337,58 @@ def _block_from_row(row: Any, path: StoreAddress) -> SampleBlock:
     )
 
 
+@dataclass(frozen=True)
+class StoredBlock:
+    """A stored block row, checked, its samples decoded a slice at a time (`Store.stored_blocks`): what
+    a reader of long blocks uses instead of `SampleBlock` so that its memory follows the slice it works
+    on, not the block (a 10x longer record step holds 10x the samples). Values as `SampleBlock`'s,
+    bit for bit."""
+
+    kind: str
+    step_idx: int | None
+    run: int
+    orientation: str
+    t0_s: float
+    rate_hz: float
+    lsb: tuple[float, float, float] | None  # int16 counts of these LSB sizes (accel, gyro, temp); None: float32
+    chamber: np.ndarray  # (k, 2): t_s, deg C (a view of the blob)
+    table: np.ndarray  # (m, 2): t_s, deg/s
+    _row: dict[str, Any]
+
+    def __len__(self) -> int:
+        return int(self._row["n"])
+
+    def times(self, lo: int, hi: int) -> np.ndarray:
+        """`SampleBlock.times()[lo:hi]`."""
+        counter = np.frombuffer(self._row["counter"], dtype="<i4")
+        return self.t0_s + (counter[lo:hi].astype(np.int64) - np.int64(counter[0])) / self.rate_hz
+
+    def counts(self, column: str, lo: int, hi: int) -> np.ndarray:
+        """Rows lo:hi of an int16 block's stored counts of `column` (accel_g, gyro_dps: (rows, 3); temp_c:
+        (rows,)), a view of the blob."""
+        if self.lsb is None:
+            raise ValueError("a float32 block holds no counts")
+        return self._stored(column, "<i2")[lo:hi]
+
+    def values(self, column: str, lo: int, hi: int) -> np.ndarray:
+        """Rows lo:hi of `column` decoded to float64, as `SampleBlock`'s."""
+        if self.lsb is None:
+            return self._stored(column, "<f4")[lo:hi].astype(float)
+        return self.counts(column, lo, hi) * self.lsb[("accel_g", "gyro_dps", "temp_c").index(column)]
+
+    def _stored(self, column: str, dtype: str) -> np.ndarray:
+        raw = np.frombuffer(self._row[column], dtype=dtype)
+        return raw if column == "temp_c" else raw.reshape(-1, 3)
+
+
+def _stored_block(row: dict[str, Any], path: StoreAddress) -> StoredBlock:
+    lsb = _checked_row(row, path)
+    return StoredBlock(kind=row["kind"], step_idx=row["step_idx"], run=row["run"], orientation=row["orientation"],
+                       t0_s=row["t0_s"], rate_hz=row["rate_hz"], lsb=lsb,
+                       chamber=np.frombuffer(row["chamber"], dtype="<f8").reshape(-1, 2),
+                       table=np.frombuffer(row["table"], dtype="<f8").reshape(-1, 2), _row=row)
+
+
 def _end_time(row: Any) -> float:
     """Campaign time of a checked block row's last sample, as the frame's time column computes it."""
     counter = np.frombuffer(row["counter"], dtype="<i4")
@@ -1257,6 +1309,11 @@ class Store:
         for row in self._block_rows(campaign_id, kinds):
             yield _block_from_row(row, self.path)
 
+    def stored_blocks(self, campaign_id: int, kinds: Sequence[str] = ("record",)) -> Iterator[StoredBlock]:
+        """`blocks`, each decoded only a slice at a time by its reader (`StoredBlock`)."""
+        for row in self._block_rows(campaign_id, kinds):
+            yield _stored_block(row, self.path)
+
     def _block_rows(self, campaign_id: int, kinds: Sequence[str]) -> Iterator[Any]:
         """The stored block rows of the given kinds in time order (blobs not yet checked)."""
         q = (select(sample_blocks).where(sample_blocks.c.campaign_id == campaign_id,
@@ -1490,4 +1547,5 @@ def _filled(n: int, value: float, out: np.ndarray | None) -> np.ndarray:
     return out
 
 
-__all__ = ["CampaignInfo", "LeaseHolder", "LeaseLost", "SampleBlock", "Store", "StoreDamage", "StoreError"]
+__all__ = ["CampaignInfo", "LeaseHolder", "LeaseLost", "SampleBlock", "Store", "StoreDamage", "StoreError",
+           "StoredBlock"]
