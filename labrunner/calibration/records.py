@@ -371,21 +371,32 @@ def records_from_labels(a: dict[str, Any], row_record: np.ndarray, row_interval_
         if here.size == 0:
             continue
         cnt[here] = c[here]
-        columns = [a["temp"][lo:hi], a["rate"][lo:hi]] + [y[lo:hi, j] for j in range(6)]
-        for j, x in enumerate(columns):
+        col = np.empty(hi - lo)  # one output column and its deviations at a time, in reused buffers
+        dev = np.empty(hi - lo)
+        for j in range(8):
+            x = a["temp"][lo:hi] if j == 0 else a["rate"][lo:hi] if j == 1 else _output_into(y, j - 2, lo, hi, col)
             part = np.bincount(bins, weights=x, minlength=n_rec + 1)[1:]
             sums[here, j] = part[here]
             if j >= 2:  # scatter about the record's mean (complete: no record spans two chunks)
                 mean = np.zeros(n_rec + 1)
                 mean[here + 1] = part[here] / c[here]
-                dev = x - mean[bins]
-                sq[here, j - 2] = np.bincount(bins, weights=dev * dev, minlength=n_rec + 1)[1:][here]
+                np.take(mean, bins, out=dev, mode="clip")  # (bins are in range; "raise" buffers the output)
+                np.subtract(x, dev, out=dev)
+                np.multiply(dev, dev, out=dev)
+                sq[here, j - 2] = np.bincount(bins, weights=dev, minlength=n_rec + 1)[1:][here]
         rows = np.flatnonzero(lab >= 0)
         lab_in = lab[rows]
-        uniq, first_at = np.unique(lab_in, return_index=True)
-        _, last_rev = np.unique(lab_in[::-1], return_index=True)
-        first[uniq] = lo + rows[first_at]
-        last[uniq] = lo + rows[::-1][last_rev]
+        # First and last row of each record from the runs of equal labels (a record's rows are one run, or a
+        # few with masked rows between them): the same rows as np.unique's first occurrences, without
+        # sorting the chunk's labels.
+        edge = np.flatnonzero(lab_in[1:] != lab_in[:-1]) + 1
+        run_start = np.concatenate(([0], edge))
+        run_end = np.concatenate((edge, [lab_in.size]))
+        run_lab = lab_in[run_start]
+        uniq, first_run = np.unique(run_lab, return_index=True)
+        _, last_rev = np.unique(run_lab[::-1], return_index=True)
+        first[uniq] = lo + rows[run_start[first_run]]
+        last[uniq] = lo + rows[run_end[run_lab.size - 1 - last_rev] - 1]
         temp_in = a["temp"][lo:hi][rows]
         np.maximum.at(tmax, lab_in, temp_in)
         np.minimum.at(tmin, lab_in, temp_in)
@@ -416,6 +427,15 @@ def records_from_labels(a: dict[str, Any], row_record: np.ndarray, row_interval_
         reference=reference_values(orient, rate), step=np.full(n_rec, -1, dtype=np.int64),
         row_start=first.astype(np.int64), row_stop=last.astype(np.int64) + 1,
     )
+
+
+def _output_into(y: Any, j: int, lo: int, hi: int, buf: np.ndarray) -> np.ndarray:
+    """Output column j of rows lo..hi as float64: a store's counts converted into `buf` (the same numbers as
+    `y[lo:hi, j]`), any other column as the view it is."""
+    column = y.columns[j] if isinstance(y, Outputs) else None
+    if isinstance(column, ScaledColumn):
+        return np.multiply(column.counts[lo:hi], column.scale, dtype=np.float64, out=buf)
+    return np.asarray(y[lo:hi, j], dtype=float)
 
 
 def _cuts(labels_of: Callable[[int, int], np.ndarray], n: int) -> list[int]:

@@ -107,6 +107,26 @@ def test_interleaved_labels_are_summed_whole(monkeypatch: pytest.MonkeyPatch) ->
     _check(out, _reference(frame, labels))
 
 
+def test_counts_held_as_counts_give_the_records_of_their_float_values(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A store's outputs stay int16 counts (`ScaledColumn`): summed from counts converted a chunk at a time,
+    the records are bit for bit those of the float64 columns (counts x scale)."""
+    frame = _campaign(seed=5)
+    records = segment_records(frame)
+    monkeypatch.setattr(rec, "CHUNK_ROWS", 700)
+    rng = np.random.default_rng(2)
+    counts = [rng.integers(-3000, 3000, len(frame)).astype(np.int16) for _ in range(6)]
+    scales = [1 / 2048, 1 / 4096, 1 / 8192, 0.07, 0.035, 1 / 16.4]
+    a = frame_arrays(frame)
+    held = dict(a, y=rec.Outputs([rec.ScaledColumn(c, s) for c, s in zip(counts, scales)]))
+    plain = dict(a, y=rec.Outputs([c * s for c, s in zip(counts, scales)]))
+    mask = _draw(np.random.default_rng(1), len(frame), 0.8, chunk=333)
+    for m in (None, mask):
+        got = records_from_labels(held, records.row_record, records.row_interval_s, m)
+        want = records_from_labels(plain, records.row_record, records.row_interval_s, m)
+        for name in ("mean", "sem", "temp_c", "temp_span_c", "n_rows", "t_start_s", "t_end_s", "row_start"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+
+
 def test_draws_in_chunks_are_the_generators_stream() -> None:
     a, b = np.random.default_rng(42), np.random.default_rng(42)
     np.testing.assert_array_equal(_draw(a, 10_001, 0.3, chunk=64), b.random(10_001) < 0.3)
