@@ -10,7 +10,9 @@ the search and the trial values of a candidate's parameters share most of them.
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 
@@ -24,23 +26,74 @@ from .summary import channel_sample_rms
 
 # Drift-strength grid points tried first when profiling the likelihood (then the best's neighbours).
 _COARSE = (0, 1, 4, 7, 10, 13, 16, 19, 22, 25)
-_DESIGN_CACHE = 64  # whitened design parts kept (each about 5 M p floats; most p are 1 to 16)
-_COLUMN_CACHE = 400  # whitened candidate columns kept (most are one column)
+# Whitened design parts and candidate columns kept, in bytes: an entry is about 5 M p floats (M blocks,
+# p columns), and the blocks follow the hours logged (a campaign of 10x longer records has 2.5x the
+# blocks), so a count of entries let memory grow with the campaign (the paper store's search filled
+# ~250 MB; at 10x ~600 MB). A part evicted is whitened again when asked for: the same numbers.
+_DESIGN_CACHE_BYTES = 64_000_000
+_COLUMN_CACHE_BYTES = 32_000_000
+
+_V = TypeVar("_V")
+
+
+class _ByteLru(Generic[_V]):
+    """Values kept by recency of use up to a total of `max_bytes` (the least recent dropped first)."""
+
+    def __init__(self, max_bytes: int, size: Callable[[_V], int]) -> None:
+        self.max_bytes = max_bytes
+        self._size = size
+        self._items: OrderedDict[Hashable, tuple[_V, int]] = OrderedDict()
+        self.bytes = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def get(self, key: Hashable) -> _V | None:
+        found = self._items.get(key)
+        if found is None:
+            return None
+        self._items.move_to_end(key)
+        return found[0]
+
+    def put(self, key: Hashable, value: _V) -> _V:
+        size = self._size(value)
+        self._items[key] = (value, size)
+        self.bytes += size
+        while self.bytes > self.max_bytes and len(self._items) > 1:  # the newest stays (it is in use)
+            _, (_, dropped) = self._items.popitem(last=False)
+            self.bytes -= dropped
+        return value
+
+
+def _whitened_bytes(w: Whitened) -> int:
+    return int(w.full.nbytes + sum(f.nbytes for f in w.folds))
+
+
+def _part_bytes(entry: tuple[Whitened, np.ndarray, np.ndarray]) -> int:
+    return _whitened_bytes(entry[0]) + int(entry[1].nbytes + entry[2].nbytes)
 
 
 @dataclass
-class ChannelSystem:
-    """One channel's design X and error y, whitened by the full filter and by each fold's filter,
-    with the Grams of [X | y] (X's whitening is shared by channels with the same design)."""
+class ChannelFit:
+    """One channel's fit of a specification, as its Grams of [X | y] whitened by the full filter and by
+    each fold's filter: what the coefficients, the residual and the held-out RMS are read from."""
 
     channel: str
     rho_index: int
-    x: Whitened  # (M, p) and per fold (training blocks, p)
-    y: Whitened  # (M, 1) and per fold
     g_full: np.ndarray  # (p+1, p+1)
     g_fold: np.ndarray  # (K, p+1, p+1)
     slices: dict[str, slice]
     cv: CvResult
+
+
+@dataclass
+class ChannelSystem(ChannelFit):
+    """A `ChannelFit` with its whitened design X and error y (X's whitening is shared by channels with
+    the same design): what candidate columns are tried against (`Engine.try_columns`). Five floats per
+    block and column: a fit kept for later (`Engine.prediction_system`) holds the Grams only."""
+
+    x: Whitened  # (M, p) and per fold (training blocks, p)
+    y: Whitened  # (M, 1) and per fold
 
     def cross(self, z_full: np.ndarray, z_folds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """[X | y]' z for the full and the fold-whitened data."""
@@ -62,9 +115,9 @@ class Engine:
         self.m = len(blocks)
         self.penalty = float(np.log(self.m))
         self._filters: dict[int, FoldFilters] = {}
-        self._xcache: OrderedDict[tuple, tuple[Whitened, np.ndarray, np.ndarray]] = OrderedDict()
+        self._xcache: _ByteLru[tuple[Whitened, np.ndarray, np.ndarray]] = _ByteLru(_DESIGN_CACHE_BYTES, _part_bytes)
         self._ycache: dict[tuple[str, int], Whitened] = {}
-        self._zcache: OrderedDict[tuple, Whitened] = OrderedDict()
+        self._zcache: _ByteLru[Whitened] = _ByteLru(_COLUMN_CACHE_BYTES, _whitened_bytes)
         self._row_block = blocks.row_block()
         self._rms_cache: dict[tuple, float] = {}
 
@@ -115,6 +168,14 @@ class Engine:
         """The channel's whitened design and Grams. Whitening is the expensive part, so each part
         of the design (the baseline, each term) is whitened once per drift rate and reused across
         channels, candidates and steps; only the cross products are formed anew."""
+        fit, parts, wy = self._fit(spec, channel, rho_index)
+        wx = Whitened(np.concatenate([w.full for w, _, _ in parts], axis=1),
+                      [np.concatenate([w.folds[f] for w, _, _ in parts], axis=1) for f in range(self.n_folds)])
+        return ChannelSystem(**vars(fit), x=wx, y=wy)
+
+    def _fit(self, spec: Spec, channel: str, rho_index: int
+             ) -> tuple[ChannelFit, list[tuple[Whitened, np.ndarray, np.ndarray]], Whitened]:
+        """`system` without the whitened design put together: the fit, the whitened parts and y."""
         design = self.builder.design(spec, channel)
         parts = [self._part(key, cols, rho_index) for key, cols in design.parts]
         if (channel, rho_index) not in self._ycache:
@@ -138,23 +199,17 @@ class Engine:
                 g_fold[:, si, sj] = np.stack([a.T @ b for a, b in zip(wi.folds, wj.folds)])
                 g_full[sj, si] = g_full[si, sj].T
                 g_fold[:, sj, si] = np.swapaxes(g_fold[:, si, sj], 1, 2)
-        wx = Whitened(np.concatenate([w.full for w, _, _ in parts], axis=1),
-                      [np.concatenate([w.folds[f] for w, _, _ in parts], axis=1) for f in range(self.n_folds)])
-        return ChannelSystem(channel, rho_index, wx, wy, g_full, g_fold, design.slices,
-                             cross_validate(g_full, g_fold, self.m))
+        return (ChannelFit(channel, rho_index, g_full, g_fold, design.slices, cross_validate(g_full, g_fold, self.m)),
+                parts, wy)
 
     def _part(self, key: tuple, cols: np.ndarray, rho_index: int) -> tuple[Whitened, np.ndarray, np.ndarray]:
         """A design part whitened, with its own Grams (cached)."""
         ck = (key, rho_index)
-        if ck in self._xcache:
-            self._xcache.move_to_end(ck)
-            return self._xcache[ck]
+        entry = self._xcache.get(ck)
+        if entry is not None:
+            return entry
         w = self.whiten(rho_index, cols)
-        entry = (w, w.full.T @ w.full, np.stack([f.T @ f for f in w.folds]))
-        self._xcache[ck] = entry
-        if len(self._xcache) > _DESIGN_CACHE:
-            self._xcache.popitem(last=False)
-        return entry
+        return self._xcache.put(ck, (w, w.full.T @ w.full, np.stack([f.T @ f for f in w.folds])))
 
     def whiten(self, rho_index: int, z: np.ndarray) -> Whitened:
         return self.filters(rho_index).whiten(z)
@@ -162,13 +217,9 @@ class Engine:
     def whiten_cached(self, key: tuple, rho_index: int, z: np.ndarray) -> Whitened:
         """Whitened candidate columns, kept for the next step (key identifies z)."""
         ck = (key, rho_index)
-        if ck in self._zcache:
-            self._zcache.move_to_end(ck)
-            return self._zcache[ck]
-        w = self.whiten(rho_index, z)
-        self._zcache[ck] = w
-        if len(self._zcache) > _COLUMN_CACHE:
-            self._zcache.popitem(last=False)
+        w = self._zcache.get(ck)
+        if w is None:
+            w = self._zcache.put(ck, self.whiten(rho_index, z))
         return w
 
     def try_columns(self, system: ChannelSystem, z: np.ndarray | Whitened) -> CvResult:
@@ -197,7 +248,7 @@ class Engine:
 
     # -- fitted quantities -------------------------------------------------------------------
 
-    def coefficients(self, spec: Spec, system: ChannelSystem) -> tuple[np.ndarray, float]:
+    def coefficients(self, spec: Spec, system: ChannelFit) -> tuple[np.ndarray, float]:
         """Coefficients fitted on all blocks, and the per-row white-noise variance estimate.
 
         The drift's diffuse start leaves the constant (the bias c0, the baseline's first
@@ -212,7 +263,7 @@ class Engine:
         dof = max(self.m - 1 - system.cv.n_params, 1)
         return beta, sse / dof
 
-    def term_fit(self, spec: Spec, system: ChannelSystem, term: str) -> TermFitPart:
+    def term_fit(self, spec: Spec, system: ChannelFit, term: str) -> TermFitPart:
         """A term's coefficients in the full fit, their covariance and the term's Schur complement."""
         beta, s2 = self.coefficients(spec, system)
         sl = system.slices[term]
@@ -225,17 +276,18 @@ class Engine:
         cov = s2 * np.linalg.pinv(schur, hermitian=True, rcond=1e-10)
         return TermFitPart(beta[sl], cov, schur)
 
-    def residual(self, spec: Spec, system: ChannelSystem) -> np.ndarray:
+    def residual(self, spec: Spec, system: ChannelFit) -> np.ndarray:
         """(M,) block-mean residual (measured minus fitted model) of the full fit."""
         beta, _ = self.coefficients(spec, system)
         return self.y[:, CHANNELS.index(system.channel)] - self.builder.design(spec, system.channel).x @ beta
 
-    def prediction_system(self, spec: Spec, channel: str) -> ChannelSystem:
-        """The system the deterministic terms are fitted in for prediction: weighted least squares
+    def prediction_system(self, spec: Spec, channel: str) -> ChannelFit:
+        """The fit the deterministic terms are fitted in for prediction: weighted least squares
         (no drift whitening). Whitened by a strong drift model, the slow part of what temperature
         explains is left to the drift level, and the fit predicts held-out rows worse than a plain
-        least-squares fit; the drift model weighs the evidence, this fit makes the model."""
-        return self.system(spec, channel, 0)
+        least-squares fit; the drift model weighs the evidence, this fit makes the model. (Its Grams
+        only: the diagnosis keeps one per channel to the end, and nothing is tried against it.)"""
+        return self._fit(spec, channel, 0)[0]
 
     def cached_heldout_rms(self, spec: Spec, channel: str) -> float:
         """`heldout_rms` of a specification, kept: the selection asks for the same "before" often."""
@@ -244,7 +296,7 @@ class Engine:
             self._rms_cache[key] = self._heldout_rms(spec, channel)
         return self._rms_cache[key]
 
-    def heldout_rms(self, spec: Spec, system: ChannelSystem) -> float:
+    def heldout_rms(self, spec: Spec, system: ChannelFit) -> float:
         """Held-out raw RMS of the specification on the system's channel (see `_heldout_rms`)."""
         return self.cached_heldout_rms(spec, system.channel)
 
