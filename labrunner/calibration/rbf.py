@@ -30,7 +30,7 @@ this makes training on record means equivalent to training on the raw samples.
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -164,28 +164,58 @@ def farthest_points(z: np.ndarray, k: int, weights: np.ndarray | None = None) ->
         return np.arange(n)
     start = int(np.argmax(weights)) if weights is not None else 0
     chosen = [start]
-    diff = z - z[start]
-    d = np.einsum("ij,ij->i", diff, diff)
+    squared = _squared_distances(z)
+    d = squared(start, np.empty(n))
     dj = np.empty_like(d)
     for _ in range(k - 1):
         j = int(np.argmax(d))
         if d[j] <= 0:
             break
         chosen.append(j)
-        np.subtract(z, z[j], out=diff)  # buffers reused: 250 passes over the points allocate nothing
-        np.einsum("ij,ij->i", diff, diff, out=dj)
-        np.minimum(d, dj, out=d)
+        np.minimum(d, squared(j, dj), out=d)
     return np.array(chosen)
+
+
+def _squared_distances(z: np.ndarray) -> Callable[[int, np.ndarray], np.ndarray]:
+    """`squared(j, out)`: out = |z_i - z_j|^2 for every point i, in buffers reused over the calls.
+
+    One or two inputs (the paper and hybrid networks): column by column, d0^2 + d1^2 as the row-wise
+    einsum sums them (the same numbers), without numpy's per-row loop over a row of two. More inputs:
+    the einsum itself (it sums longer rows in another order)."""
+    n, dim = z.shape
+    if dim > 2:
+        diff = np.empty_like(z)
+
+        def rows(j: int, out: np.ndarray) -> np.ndarray:
+            np.subtract(z, z[j], out=diff)
+            return np.einsum("ij,ij->i", diff, diff, out=out)
+
+        return rows
+    cols = [np.ascontiguousarray(z[:, i]) for i in range(dim)]
+    tmp = np.empty(n)
+
+    def columns(j: int, out: np.ndarray) -> np.ndarray:
+        np.subtract(cols[0], cols[0][j], out=out)
+        np.multiply(out, out, out=out)
+        for c in cols[1:]:
+            np.subtract(c, c[j], out=tmp)
+            np.multiply(tmp, tmp, out=tmp)
+            np.add(out, tmp, out=out)
+        return out
+
+    return columns
 
 
 def _gcv_orthogonal(d: np.ndarray, g: np.ndarray, zz: float, n: float, lams: np.ndarray) -> np.ndarray:
     """GCV at each lambda of a model with orthogonal columns (norms d, projections g)."""
-    dl = d[None, :] + lams[:, None]
-    gamma = np.sum(d[None, :] / dl, axis=1)
-    rss = zz - np.sum(g[None, :] ** 2 * (d[None, :] + 2 * lams[:, None]) / dl ** 2, axis=1)
+    lam = lams[:, None]
+    dl = d + lam
+    gamma = np.sum(d / dl, axis=1)
+    rss = zz - np.sum(g ** 2 * (d + 2 * lam) / dl ** 2, axis=1)
     rss = np.maximum(rss, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(n - gamma > 1e-9, n * rss / (n - gamma) ** 2, np.inf)
+    left = n - gamma
+    # GCV where the model leaves degrees of freedom, else inf (divided only there: no warning to silence)
+    return np.divide(n * rss, left ** 2, out=np.full(lams.shape, np.inf), where=left > 1e-9)
 
 
 def _lambda_grid(scale: float) -> np.ndarray:
@@ -216,8 +246,8 @@ def forward_select(phi: np.ndarray, y: np.ndarray, w: np.ndarray, max_centres: i
     q_basis = np.empty((n_pts, max(steps, 1)))
     c_mat = np.empty((max(steps, 1), m_all))
     sel: list[int] = []
-    ds: list[float] = []
-    gs: list[float] = []
+    ds = np.empty(max(steps, 1))  # the selected columns' orthogonalised norms and projections, ds[:k], gs[:k]
+    gs = np.empty(max(steps, 1))
     best_gcv, best_m = zz / n, 0
     for k in range(steps):
         score = np.where(avail, proj ** 2 / (norms + lam + 1e-300), -np.inf)
@@ -226,22 +256,22 @@ def forward_select(phi: np.ndarray, y: np.ndarray, w: np.ndarray, max_centres: i
             break
         # Selection-bias guard (risk inflation criterion, Foster & George 1994): the best of M
         # candidates explains ~2 ln M noise variances by chance, so stop when it explains less.
-        rss = zz - float(np.sum(np.array(gs) ** 2 / np.array(ds))) if gs else zz
+        rss = zz - float(np.sum(gs[:k] ** 2 / ds[:k])) if k else zz
         if score[j] < 2.0 * np.log(max(int(avail.sum()), 2)) * rss / max(n - len(sel), 1):
             break
         q = f[:, j] - q_basis[:, :k] @ c_mat[:k, j]  # the chosen column, orthogonalised
         dq = float(q @ q)
         sel.append(j)
-        ds.append(dq)
-        gs.append(float(proj[j]))
+        ds[k] = dq
+        gs[k] = g = float(proj[j])
         avail[j] = False
         c = (q @ f) / dq  # q is orthogonal to the basis, so q'f_j equals q'(orthogonalised f_j)
         q_basis[:, k] = q
         c_mat[k] = c
-        proj -= c * gs[-1]
+        proj -= c * g
         norms -= c * c * dq
         avail &= norms > 1e-9 * orig
-        gcv = _gcv_orthogonal(np.array(ds), np.array(gs), zz, n, lams)
+        gcv = _gcv_orthogonal(ds[:k + 1], gs[:k + 1], zz, n, lams)
         i = int(np.argmin(gcv))
         lam = float(lams[i])
         if gcv[i] < best_gcv * (1 - 1e-9):

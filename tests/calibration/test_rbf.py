@@ -105,3 +105,27 @@ def test_training_on_record_means_equals_training_on_raw_samples(raw_campaign):
         e_rec = np.sqrt(np.mean((target - p_rec) ** 2))
         e_raw = np.sqrt(np.mean((target - p_raw) ** 2))
         assert e_rec == pytest.approx(e_raw, rel=0.05), (k, e_rec, e_raw)
+
+
+def _greedy_maximin(z: np.ndarray, k: int, start: int) -> list[int]:
+    """Farthest-point sampling written plainly: squared distances as the row-wise einsum."""
+    chosen = [start]
+    d = np.einsum("ij,ij->i", z - z[start], z - z[start])
+    while len(chosen) < k:
+        j = int(np.argmax(d))
+        if d[j] <= 0:
+            break
+        chosen.append(j)
+        d = np.minimum(d, np.einsum("ij,ij->i", z - z[j], z - z[j]))
+    return chosen
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3, 4])
+def test_farthest_points_are_the_plain_greedy_maximin_choice(dim):
+    rng = np.random.default_rng(dim)
+    z = np.round(rng.uniform(-1, 1, (3000, dim)), 3)  # quantised, as record means of int16 outputs are
+    w = rng.uniform(1, 50, 3000)
+    got = farthest_points(z, 200, w)
+    assert got.tolist() == _greedy_maximin(z, 200, int(np.argmax(w)))  # the same points in the same order
+    few = np.repeat(z[:5], 40, axis=0)
+    assert sorted(farthest_points(few, 50).tolist()) == sorted(_greedy_maximin(few, 50, 0))  # stops at 5
