@@ -88,13 +88,15 @@ class RbfModel:
         """Add the networks' corrections to `out` and their extrapolation flags to `extrap` (in place)."""
         columns = {c: (y[:, c] if c >= 0 else temp_c) for c in range(-1, 6)}
         distinct = _Distinct(columns)
+        inputs: dict[tuple[int, ...], np.ndarray] = {}  # a triad's three networks share theirs
         for k, net in enumerate(self.networks):
             used = input_columns(self.variant, k)
             found = distinct.rows(used)
-            if found is None:
-                x = self.inputs(y, temp_c, k)
-            else:  # each distinct input once (the outputs are quantised): the same values, gathered
-                x = np.column_stack([columns[c][found[0]] for c in used])
+            if used not in inputs:
+                # each distinct input once (the outputs are quantised): the same values, gathered
+                inputs[used] = self.inputs(y, temp_c, k) if found is None else np.column_stack(
+                    [columns[c][found[0]] for c in used])
+            x = inputs[used]
             outside = net.outside(x, self.input_margin)
             extrap |= outside if found is None else outside[found[1]]
             if net.n_centres == 0:  # nothing left for the network: the output is the base's

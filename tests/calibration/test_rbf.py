@@ -129,3 +129,17 @@ def test_farthest_points_are_the_plain_greedy_maximin_choice(dim):
     assert got.tolist() == _greedy_maximin(z, 200, int(np.argmax(w)))  # the same points in the same order
     few = np.repeat(z[:5], 40, axis=0)
     assert sorted(farthest_points(few, 50).tolist()) == sorted(_greedy_maximin(few, 50, 0))  # stops at 5
+
+
+@pytest.mark.parametrize("dim", [1, 2, 4])
+def test_outside_flags_rows_with_any_input_beyond_the_range_and_margin(dim):
+    rng = np.random.default_rng(10 + dim)
+    x = rng.uniform(-1.2, 1.2, (5000, dim))
+    x[::97, -1] = np.nan  # NaN is never outside (as before: comparisons with NaN are false)
+    net = train_rbf(rng.uniform(-1, 1, (400, dim)), rng.normal(size=400), widths=(0.3,), max_centres=5)
+    lo, hi = net.input_min, net.input_max
+    for margin in (0.0, 0.05):
+        span = (hi - lo) * margin
+        want = np.any((x < lo - span) | (x > hi + span), axis=1)
+        np.testing.assert_array_equal(net.outside(x, margin), want)
+    assert net.outside(x, 0.0).any() and not net.outside(x, 0.0).all()
