@@ -220,7 +220,7 @@ class SimWorld:
             run=np.full(n, self.run, dtype=np.int64),
             t_on_s=times - self.t_on,
             temp_c=self.imu_temperature_at(times, history_until),
-            force_g=np.tile(up, (n, 1)),
+            force_g=np.broadcast_to(up, (n, 3)),  # one up vector for every sample: a read-only view
             rate_dps=rate[:, None] * up[None, :],
         )
 
