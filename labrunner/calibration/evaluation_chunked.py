@@ -55,7 +55,7 @@ from .evaluation import (
     run_offsets,
     split_plan,
 )
-from .ins import RowRuns, ins_errors, windows
+from .ins import RowRuns, WindowNavigation, windows
 from .px4_reference import Px4Stream
 from .records import Records, TemperatureSteps, frame_arrays, records_from_labels
 from .triads import ORIENTATIONS
@@ -128,6 +128,7 @@ def _blocked_choice(pop: int, size: int, rng: np.random.Generator) -> np.ndarray
 
 
 INS_CHUNK = 1 << 19  # INS rows compensated at once
+INS_KEYS = ("orientation", "temp", "rate")  # what the INS test reads of a window's row besides its outputs
 DRAW_CHUNK = 1 << 20  # rows of the random split's stream drawn at once when its held-out rows are counted
 
 
@@ -491,7 +492,7 @@ def _score_pass(source: RowSource, records: Records, n_rows: int, live: list[_Sp
                 want, parts = ins_rows[id(s)]
                 lo, hi = np.searchsorted(want, [g0, g0 + m])
                 if hi > lo:
-                    parts.append(take_rows(a, want[lo:hi] - g0))
+                    parts.append(take_rows(a, want[lo:hi] - g0, INS_KEYS))
     for s in live:
         batches.pop(id(s)).close(s.res)
         if s.random:
@@ -516,14 +517,17 @@ def _ins(models: Mapping[str, Scored], rows_a: dict[str, Any], local: np.ndarray
     """`evaluation.ins_test` on the windows' rows `rows_a`, the windows `local` (W, n) indexing them."""
     flat = local.ravel()
     n = int(flat.size)
-    # One model's outputs at a time, computed INS_CHUNK rows at a time: up to MAX_WINDOWS minutes of rows
-    # (1.2 M at 50 Hz) would otherwise be compensated at once for every model. Each model's errors are its
-    # own; compensation is row by row, so up to INS_CHUNK rows (the paper campaign: 288 000) the numbers
-    # are the whole-frame code's bit for bit.
-    res.ins = {}
-    for name, model in {"raw": None, **models}.items():
-        values = np.concatenate([
-            _apply(model, _take(rows_a, flat[lo:lo + INS_CHUNK]), done={})[0]
-            for lo in range(0, n, INS_CHUNK)])
-        res.ins.update(ins_errors(rows_a, local, {name: values}))
-        del values
+    nav = WindowNavigation(rows_a, local)
+
+    def outputs(model: Scored | None) -> Iterator[np.ndarray]:
+        # INS_CHUNK rows compensated at once, one model at a time, each piece navigated as it comes: up to
+        # MAX_WINDOWS minutes of rows (1.2 M at 50 Hz) would otherwise be compensated at once for every
+        # model. The pieces are those the chunked code has always compensated (an RBF network's outputs
+        # depend on the rows computed with them at the last bit): up to INS_CHUNK rows (the paper
+        # campaign: 288 000) the whole-frame code's, bit for bit.
+        for lo in range(0, n, INS_CHUNK):
+            idx = flat[lo:lo + INS_CHUNK]
+            sub = {k: rows_a[k][idx] for k in INS_KEYS} | {"y": rows_a["y"][idx]}
+            yield _apply(model, sub, done={})[0]
+
+    res.ins = {name: nav.errors(outputs(model)) for name, model in {"raw": None, **models}.items()}

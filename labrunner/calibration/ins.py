@@ -14,6 +14,7 @@ the IMU's errors alone do to a navigation solution in a minute.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -244,23 +245,58 @@ def window_rows(a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
     return sel[idx] if idx.size else idx
 
 
+NAV_WINDOWS = 64  # windows navigated at once (each window's solution is its own: the same numbers in any group)
+
+
+class WindowNavigation:
+    """The INS test's navigation of the windows `win` (W, n) of `window_rows` in the campaign arrays `a`:
+    the reference solution once, then `errors` of an output set given in pieces of rows (in `win.ravel()`
+    order, any sizes): each window is navigated when its rows are in, NAV_WINDOWS at a time, so no array
+    of every window's outputs is needed."""
+
+    def __init__(self, a: dict[str, np.ndarray], win: np.ndarray, window_s: float = DEFAULT_WINDOW_S) -> None:
+        self.w, self.n = win.shape
+        self.window_s = window_s
+        self.dt = window_s / self.n
+        ends = []
+        for w0 in range(0, self.w, NAV_WINDOWS):
+            rows = win[w0:w0 + NAV_WINDOWS].ravel()
+            r = reference_values(a["orientation"][rows], a["rate"][rows]).reshape(-1, self.n, 6)
+            ends.append(_solution(r[..., :3], r[..., 3:], self.dt))
+        self.pos_t = np.concatenate([e[0] for e in ends])
+        self.att_t = np.concatenate([e[1] for e in ends])
+
+    def errors(self, pieces: Iterable[np.ndarray]) -> InsErrors:
+        n = self.n
+        dist: list[np.ndarray] = []
+        ang: list[np.ndarray] = []
+        carry = np.zeros((0, 6))
+        w0 = 0
+        for piece in pieces:
+            v = np.asarray(piece, dtype=float)
+            buf = np.concatenate([carry, v]) if carry.shape[0] else v
+            k = buf.shape[0] // n  # windows complete
+            for j in range(0, k, NAV_WINDOWS):
+                m = min(NAV_WINDOWS, k - j)
+                vw = buf[j * n:(j + m) * n].reshape(m, n, 6)
+                pos, att = _solution(vw[..., :3], vw[..., 3:], self.dt)
+                d, g = _errors(pos, att, self.pos_t[w0:w0 + m], self.att_t[w0:w0 + m])
+                dist.append(d)
+                ang.append(g)
+                w0 += m
+            carry = buf[k * n:].copy()
+        if w0 != self.w or carry.shape[0]:
+            raise ValueError(f"outputs of {w0 * n + carry.shape[0]} rows given for {self.w} windows of {n} rows")
+        dd, aa = np.concatenate(dist), np.concatenate(ang)
+        return InsErrors(position_m=float(dd.mean()), attitude_deg=float(aa.mean()),
+                         position_m_max=float(dd.max()), n_windows=self.w, window_s=self.window_s)
+
+
 def ins_errors(a: dict[str, np.ndarray], win: np.ndarray, outputs: dict[str, np.ndarray],
                window_s: float = DEFAULT_WINDOW_S) -> dict[str, InsErrors]:
     """Navigation errors of each output set over the windows `win` (W, n) of `window_rows`; an output set
     (name -> (W * n, 6)) holds the raw or compensated outputs of the rows `win.ravel()`."""
     if win.size == 0:
         return {name: InsErrors(float("nan"), float("nan"), float("nan"), 0, window_s) for name in outputs}
-    rows = win.ravel()
-    ref = reference_values(a["orientation"][rows], a["rate"][rows])
-    w, n = win.shape
-    dt = window_s / n
-    r = ref.reshape(w, n, 6)
-    pos_t, att_t = _solution(r[..., :3], r[..., 3:], dt)  # the reference solution, once for every set
-    out: dict[str, InsErrors] = {}
-    for name, values in outputs.items():
-        v = np.asarray(values, dtype=float).reshape(w, n, 6)
-        pos, att = _solution(v[..., :3], v[..., 3:], dt)
-        dist, ang = _errors(pos, att, pos_t, att_t)
-        out[name] = InsErrors(position_m=float(dist.mean()), attitude_deg=float(ang.mean()),
-                              position_m_max=float(dist.max()), n_windows=w, window_s=window_s)
-    return out
+    nav = WindowNavigation(a, win, window_s)  # the reference solution, once for every set
+    return {name: nav.errors([values]) for name, values in outputs.items()}
