@@ -119,3 +119,31 @@ def test_row_runs_without_windows_and_when_they_cannot_tell() -> None:
     runs = RowRuns()
     runs.add(t, np.zeros(t.size, dtype=np.int64), np.arange(t.size))
     assert runs.window_positions() is None
+
+
+def test_windows_navigated_as_their_outputs_come_in_pieces_give_ins_errors_numbers() -> None:
+    """The chunked evaluation gives a model's outputs for the INS windows in pieces of INS_CHUNK rows
+    (cutting windows): the navigation of each window once its rows are in gives the errors of the whole
+    output array, bit for bit."""
+    from labrunner.calibration.ins import NAV_WINDOWS, WindowNavigation, ins_errors
+    from labrunner.calibration.records import reference_values
+
+    rng = np.random.default_rng(4)
+    w, n = 2 * NAV_WINDOWS + 5, 300
+    a = {"orientation": np.repeat(rng.integers(0, 6, w), n).astype(np.int8), "rate": np.zeros(w * n)}
+    win = rng.permutation(w * n).reshape(w, n)  # windows' rows anywhere in the arrays
+    values = reference_values(a["orientation"][win.ravel()], a["rate"][win.ravel()])
+    values += rng.normal(0, 1e-3, values.shape) + [1e-3, 0, 0, 0.01, 0, 0]
+    want = ins_errors(a, win, {"m": values})["m"]
+    assert want.n_windows == w and want.position_m > 0
+    # ... which are every window navigated at once (what ins_errors did before it went NAV_WINDOWS at a time)
+    from labrunner.calibration.ins import _errors, _solution
+
+    r = reference_values(a["orientation"][win.ravel()], a["rate"][win.ravel()]).reshape(w, n, 6)
+    v = values.reshape(w, n, 6)
+    dist, ang = _errors(*_solution(v[..., :3], v[..., 3:], 60.0 / n), *_solution(r[..., :3], r[..., 3:], 60.0 / n))
+    assert (want.position_m, want.attitude_deg, want.position_m_max) == (dist.mean(), ang.mean(), dist.max())
+    nav = WindowNavigation(a, win)
+    for size in (1000, n, 7 * n + 11, values.shape[0]):
+        got = nav.errors(values[lo:lo + size] for lo in range(0, values.shape[0], size))
+        assert got == want
