@@ -183,6 +183,7 @@ class _Distinct:
     def _find(self, used: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
         code: np.ndarray | None = None
         card = 1
+        dense = False  # code is one column's codes: dense already, in order of first appearance
         for c in used:
             got = self._column(c)
             if got is None:
@@ -193,10 +194,12 @@ class _Distinct:
                 # too many combinations to code densely: find the distinct combined codes so far
                 if code is None:
                     return None
-                code, size_c = _refactor(code)
+                # (refactoring one column's codes would return them as they are)
+                code, size_c = (code, card // max(size, 1)) if dense else _refactor(code)
                 card = size_c * max(size, 1)
                 if size_c > DISTINCT_MAX_FRACTION * self.n:
                     return None
+            dense = code is None
             code = codes if code is None else code * size + codes
         assert code is not None
         inverse, n_distinct = _refactor(code)
