@@ -143,3 +143,21 @@ def test_outside_flags_rows_with_any_input_beyond_the_range_and_margin(dim):
         want = np.any((x < lo - span) | (x > hi + span), axis=1)
         np.testing.assert_array_equal(net.outside(x, margin), want)
     assert net.outside(x, 0.0).any() and not net.outside(x, 0.0).all()
+
+
+def test_distinct_inputs_past_the_dense_code_space_are_found_in_first_appearance_order():
+    from labrunner.calibration import rbf_model
+
+    rng = np.random.default_rng(4)
+    n = 20_000
+    a = rng.integers(0, n // 4, n) * 0.01  # n/4 values x 16 overflows 2 n: the codes are refactored on the way
+    b = rng.integers(0, 16, n) * 0.5
+    t = rng.integers(0, 3, n) * 10.0
+    found = rbf_model._Distinct({0: a, 1: b, -1: t}).rows((0, 1, -1))
+    assert found is not None
+    first, inverse = found
+    x = np.column_stack([a, b, t])
+    np.testing.assert_array_equal(x[first][inverse], x)  # every row is its distinct input
+    _, at = np.unique(x, axis=0, return_index=True)
+    assert first.size == at.size
+    np.testing.assert_array_equal(inverse[np.sort(at)], np.arange(at.size))  # numbered by first appearance
