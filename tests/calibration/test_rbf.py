@@ -150,9 +150,10 @@ def test_distinct_inputs_past_the_dense_code_space_are_found_in_first_appearance
 
     rng = np.random.default_rng(4)
     n = 20_000
-    a = rng.integers(0, n // 4, n) * 0.01  # n/4 values x 16 overflows 2 n: the codes are refactored on the way
-    b = rng.integers(0, 16, n) * 0.5
-    t = rng.integers(0, 3, n) * 10.0
+    k = rng.integers(0, 3000, n)
+    a = k * 0.01  # 3000 values x 16 overflows 2 n: the codes are refactored on the way
+    b = (k % 8 + 8 * rng.integers(0, 2, n)) * 0.5  # 16 values, two per value of a
+    t = (k % 2) * 10.0
     found = rbf_model._Distinct({0: a, 1: b, -1: t}).rows((0, 1, -1))
     assert found is not None
     first, inverse = found
