@@ -169,21 +169,25 @@ class _Gather:
         return join_arrays(self.parts), np.concatenate(self.labels)
 
 
+BATCH_KEYS = ("temp", "orientation", "rate", "run")  # what scoring reads of a row besides its outputs
+
+
 class _Batches:
     """Held-out rows met chunk by chunk, fed to the split's `ScoreSums` in batches of exactly SCORE_CHUNK
-    rows: the batches `score` takes of the same rows gathered whole, so the same sums in the same order."""
+    rows: the batches `score` takes of the same rows gathered whole, so the same sums in the same order.
+    Rows wait as they are held (a store's outputs as counts) and are converted a batch at a time."""
 
     def __init__(self, sums: ScoreSums, size: int | None = None) -> None:
         self.sums = sums
         self.size = _evaluation.SCORE_CHUNK if size is None else size
-        self.parts: list[dict[str, np.ndarray]] = []
+        self.parts: list[dict[str, Any]] = []
         self.labels: list[np.ndarray] = []
         self.held = 0
 
     def add(self, a: dict[str, Any], idx: np.ndarray, lab: np.ndarray) -> None:
         if idx.size == 0:
             return
-        self.parts.append(_take(a, idx))
+        self.parts.append(take_rows(a, idx, BATCH_KEYS))
         self.labels.append(lab[idx])
         self.held += int(idx.size)
         while self.held >= self.size:
@@ -195,17 +199,13 @@ class _Batches:
         self.sums.fill(res)
 
     def _feed(self, m: int) -> None:
-        if len(self.parts) == 1 and self.held == m:
-            sub, lab = self.parts[0], self.labels[0]
-        else:
-            sub = {k: np.concatenate([p[k] for p in self.parts]) for k in self.parts[0]}
-            lab = np.concatenate(self.labels)
+        rows = self.parts[0] if len(self.parts) == 1 else join_arrays(self.parts)
+        lab = self.labels[0] if len(self.labels) == 1 else np.concatenate(self.labels)
         rest = self.held - m
-        self.parts = [{k: v[m:].copy() for k, v in sub.items()}] if rest else []
+        self.parts = [join_arrays([take_rows(rows, slice(m, None), BATCH_KEYS)])] if rest else []
         self.labels = [lab[m:].copy()] if rest else []
         self.held = rest
-        self.sums.add({k: v[:m] for k, v in sub.items()}, lab[:m])
-
+        self.sums.add(_take(rows, np.arange(m)), lab[:m])
 
 @dataclass
 class _Split:
@@ -484,6 +484,9 @@ def _score_pass(source: RowSource, records: Records, n_rows: int, live: list[_Sp
         s.test_ranks = None
         if s.win is not None and s.win.size:
             ins_rows[id(s)] = (np.unique(s.win.ravel()), [])
+    a: dict[str, Any] = {}
+    lab = np.zeros(0, dtype=np.int64)
+    masks: _SplitMasks = []
     for g0, a, lab, _, masks in _passes(source, records, n_rows, live, fraction):
         m = int(a["t"].size)
         for s, test, _ in masks:
@@ -495,14 +498,19 @@ def _score_pass(source: RowSource, records: Records, n_rows: int, live: list[_Sp
                     parts.append(take_rows(a, want[lo:hi] - g0, INS_KEYS))
     for s in live:
         batches.pop(id(s)).close(s.res)
+    del picks, masks, a, lab  # the last chunk and its masks: not held while the INS tests run
+    for s in live:
         if s.random:
             continue
         if s.win is None or s.win.size == 0:
             s.res.ins_skipped = "no 60 s window of contiguous static held-out rows (records are shorter)"
             continue
         want, parts = ins_rows.pop(id(s))
+        rows_a = join_arrays(parts)
+        del parts  # joined: the pieces go
         assert s.models is not None
-        _ins(s.models, join_arrays(parts), np.searchsorted(want, s.win), s.res)
+        _ins(s.models, rows_a, np.searchsorted(want, s.win), s.res)
+        del rows_a
         s.win = None
 
 
