@@ -4,6 +4,7 @@ sensor temperature, force and rate, chunk by chunk): the truth the lag tests com
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -20,8 +21,8 @@ def dry_run_with_truth(monkeypatch: pytest.MonkeyPatch, proc: Path, sim: Path, d
     fed: list[ImuInputs] = []
     real = SimWorld.imu_inputs
 
-    def recording(self: SimWorld, times: np.ndarray) -> ImuInputs:
-        out = real(self, times)
+    def recording(self: SimWorld, times: np.ndarray, **kwargs: Any) -> ImuInputs:
+        out = real(self, times, **kwargs)  # e.g. history_until (frames made on demand)
         fed.append(out)
         return out
 

@@ -1,6 +1,6 @@
 """Are two dry-run stores the same campaign, bit for bit? (issue 15: a recording speed-up must not change it)
 
-Usage: python bench/compare_stores.py A.db B.db
+Usage: python tools/compare_stores.py A.db B.db
 
 Compares every sample block (all columns: the blobs as bytes, floats by their bits), every step, every
 event and each campaign row, leaving out only what a second run cannot repeat: wall-clock times (events'
