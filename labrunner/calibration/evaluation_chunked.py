@@ -20,8 +20,8 @@ the passes over the campaign's rows (`RowSource`), cut so that no record straddl
    plan could not settle (the random split's training part could not be fitted, so the later draws
    differ; INS pieces that cannot tell where a gap is): their rows then;
 3. the scoring: every split's held-out rows scored as they stream past, in the batches `score`
-   takes (SCORE_CHUNK rows: the same sums), and the INS windows' rows gathered (at most
-   MAX_WINDOWS x one minute per split).
+   takes (SCORE_CHUNK rows: the same sums), and the INS windows' rows (at most MAX_WINDOWS x one
+   minute per split) compensated and navigated INS_CHUNK rows at a time as they do.
 
 What is held grows with the records, the capped draws (held-out ranks, offset rows, INS windows) and
 the distinct values of the quantised outputs and times, not with the rows; the numbers are those of
@@ -55,7 +55,7 @@ from .evaluation import (
     run_offsets,
     split_plan,
 )
-from .ins import RowRuns, WindowNavigation, windows
+from .ins import NavigationStream, RowRuns, windows
 from .px4_reference import Px4Stream
 from .records import Records, TemperatureSteps, frame_arrays, records_from_labels
 from .triads import ORIENTATIONS
@@ -462,10 +462,11 @@ def _more_passes(source: RowSource, records: Records, n_rows: int, live: list[_S
 
 
 def _score_pass(source: RowSource, records: Records, n_rows: int, live: list[_Split], fraction: float) -> None:
-    """The last pass: every split's held-out rows scored as they stream past; the INS windows' rows."""
+    """The last pass: every split's held-out rows scored as they stream past, and its INS windows'
+    rows compensated and navigated as they do."""
     batches: dict[int, _Batches] = {}
     picks: dict[int, _Pick] = {}
-    ins_rows: dict[int, tuple[np.ndarray, list[dict[str, Any]]]] = {}
+    ins: dict[int, _InsStream] = {}
     for s in live:
         assert s.models is not None
         px4 = s.px4.result()
@@ -483,35 +484,26 @@ def _score_pass(source: RowSource, records: Records, n_rows: int, live: list[_Sp
         picks[id(s)] = _Pick(s.test_ranks)
         s.test_ranks = None
         if s.win is not None and s.win.size:
-            ins_rows[id(s)] = (np.unique(s.win.ravel()), [])
-    a: dict[str, Any] = {}
-    lab = np.zeros(0, dtype=np.int64)
-    masks: _SplitMasks = []
-    for g0, a, lab, _, masks in _passes(source, records, n_rows, live, fraction):
-        m = int(a["t"].size)
-        for s, test, _ in masks:
-            batches[id(s)].add(a, picks[id(s)](test), lab)
-            if id(s) in ins_rows:
-                want, parts = ins_rows[id(s)]
-                lo, hi = np.searchsorted(want, [g0, g0 + m])
-                if hi > lo:
-                    parts.append(take_rows(a, want[lo:hi] - g0, INS_KEYS))
-    for s in live:
+            ins[id(s)] = _InsStream(s.models, s.win)
+        s.win = None
+    _score_chunks(source, records, n_rows, live, fraction, batches, picks, ins)
+    for s in live:  # the last chunk and its masks are not held by now (the function's)
         batches.pop(id(s)).close(s.res)
-    del picks, masks, a, lab  # the last chunk and its masks: not held while the INS tests run
-    for s in live:
         if s.random:
             continue
-        if s.win is None or s.win.size == 0:
+        if id(s) in ins:
+            ins.pop(id(s)).close(s.res)
+        else:
             s.res.ins_skipped = "no 60 s window of contiguous static held-out rows (records are shorter)"
-            continue
-        want, parts = ins_rows.pop(id(s))
-        rows_a = join_arrays(parts)
-        del parts  # joined: the pieces go
-        assert s.models is not None
-        _ins(s.models, rows_a, np.searchsorted(want, s.win), s.res)
-        del rows_a
-        s.win = None
+
+
+def _score_chunks(source: RowSource, records: Records, n_rows: int, live: list[_Split], fraction: float,
+                  batches: dict[int, _Batches], picks: dict[int, _Pick], ins: dict[int, _InsStream]) -> None:
+    for g0, a, lab, _, masks in _passes(source, records, n_rows, live, fraction):
+        for s, test, _ in masks:
+            batches[id(s)].add(a, picks[id(s)](test), lab)
+            if id(s) in ins:
+                ins[id(s)].add(g0, a)
 
 
 def _empty_arrays() -> dict[str, Any]:
@@ -521,21 +513,51 @@ def _empty_arrays() -> dict[str, Any]:
         "y": Outputs([np.zeros(0) for _ in range(6)])}
 
 
-def _ins(models: Mapping[str, Scored], rows_a: dict[str, Any], local: np.ndarray, res: SplitResult) -> None:
-    """`evaluation.ins_test` on the windows' rows `rows_a`, the windows `local` (W, n) indexing them."""
-    flat = local.ravel()
-    n = int(flat.size)
-    nav = WindowNavigation(rows_a, local)
+class _InsStream:
+    """`evaluation.ins_test` of one split, fed by the scoring pass: its windows' rows (campaign positions
+    `win`, (W, n), in increasing order) are gathered as they stream past, and every INS_CHUNK of them (in
+    `win.ravel()` order) is compensated by each model and navigated at once (`ins.NavigationStream`):
+    at most INS_CHUNK rows wait, not every window's (up to MAX_WINDOWS minutes, 1.2 M rows at 50 Hz, per
+    split). The groups are those the chunked code has always compensated: an RBF network's outputs depend
+    on the rows computed with them at the last bit; up to INS_CHUNK rows (the paper campaign: 288 000)
+    the whole-frame code's, bit for bit."""
 
-    def outputs(model: Scored | None) -> Iterator[np.ndarray]:
-        # INS_CHUNK rows compensated at once, one model at a time, each piece navigated as it comes: up to
-        # MAX_WINDOWS minutes of rows (1.2 M at 50 Hz) would otherwise be compensated at once for every
-        # model. The pieces are those the chunked code has always compensated (an RBF network's outputs
-        # depend on the rows computed with them at the last bit): up to INS_CHUNK rows (the paper
-        # campaign: 288 000) the whole-frame code's, bit for bit.
-        for lo in range(0, n, INS_CHUNK):
-            idx = flat[lo:lo + INS_CHUNK]
-            sub = {k: rows_a[k][idx] for k in INS_KEYS} | {"y": rows_a["y"][idx]}
-            yield _apply(model, sub, done={})[0]
+    def __init__(self, models: Mapping[str, Scored], win: np.ndarray) -> None:
+        self.models: dict[str, Scored | None] = {"raw": None, **models}
+        self.flat = win.ravel()
+        assert np.all(np.diff(self.flat) > 0), "the INS windows' rows are not in increasing order"
+        self.nav = NavigationStream(*win.shape)
+        self.next = 0  # rows of `flat` gathered so far
+        self.parts: list[dict[str, Any]] = []
+        self.held = 0
 
-    res.ins = {name: nav.errors(outputs(model)) for name, model in {"raw": None, **models}.items()}
+    def add(self, g0: int, a: dict[str, Any]) -> None:
+        """The rows of the chunk whose first row is the campaign's g0 (chunks in order)."""
+        hi = int(np.searchsorted(self.flat, g0 + int(a["t"].size)))
+        if hi == self.next:
+            return
+        self.parts.append(take_rows(a, self.flat[self.next:hi] - g0, INS_KEYS))
+        self.held += hi - self.next
+        self.next = hi
+        while self.held >= INS_CHUNK:
+            self._group(INS_CHUNK)
+
+    def close(self, res: SplitResult) -> None:
+        if self.next != self.flat.size:
+            raise UserError(f"{res.name}: the INS windows' rows were not all read ({self.next:,} of "
+                            f"{self.flat.size:,}): fit it again")
+        if self.held:
+            self._group(self.held)
+        res.ins = {name: self.nav.errors(name) for name in self.models}
+
+    def _group(self, m: int) -> None:
+        rows = self.parts[0] if len(self.parts) == 1 else join_arrays(self.parts)
+        rest = self.held - m
+        self.parts = [join_arrays([take_rows(rows, slice(m, None), INS_KEYS)])] if rest else []
+        self.held = rest
+        idx = np.arange(m)
+        sub = {k: rows[k][idx] for k in INS_KEYS} | {"y": rows["y"][idx]}
+        del rows
+        self.nav.reference(sub["orientation"], sub["rate"])
+        for name, model in self.models.items():  # one model's outputs at a time
+            self.nav.add(name, _apply(model, sub, done={})[0])

@@ -248,48 +248,105 @@ def window_rows(a: dict[str, np.ndarray], rows: np.ndarray, labels: np.ndarray,
 NAV_WINDOWS = 64  # windows navigated at once (each window's solution is its own: the same numbers in any group)
 
 
-class WindowNavigation:
-    """The INS test's navigation of the windows `win` (W, n) of `window_rows` in the campaign arrays `a`:
-    the reference solution once, then `errors` of an output set given in pieces of rows (in `win.ravel()`
-    order, any sizes): each window is navigated when its rows are in, NAV_WINDOWS at a time, so no array
-    of every window's outputs is needed."""
+@dataclass
+class _Track:
+    """One output set's navigation so far: the rows of its incomplete window and the end states of the
+    windows navigated, group by group ((first window, position (m, 3), attitude (m, 3, 3)))."""
 
-    def __init__(self, a: dict[str, np.ndarray], win: np.ndarray, window_s: float = DEFAULT_WINDOW_S) -> None:
-        self.w, self.n = win.shape
+    carry: np.ndarray
+    ends: list[tuple[int, np.ndarray, np.ndarray]]
+    done: int = 0  # windows navigated
+
+
+class NavigationStream:
+    """The INS test's navigation of W windows of n rows each whose rows come in pieces, in window order
+    (`win.ravel()`'s): `reference` takes the orientations and rates of the next rows, `add` an output
+    set's values of rows (any piece sizes, each set in that order), `errors` every set's errors once all
+    rows are in. Each window is navigated once its rows are in, NAV_WINDOWS at a time, so no array of
+    every window's rows or outputs is held: the reference in groups of NAV_WINDOWS windows from the first,
+    an output set in groups of the windows each piece completes (its end states kept, a few per window)."""
+
+    def __init__(self, n_windows: int, n: int, window_s: float = DEFAULT_WINDOW_S) -> None:
+        self.w, self.n = n_windows, n
         self.window_s = window_s
-        self.dt = window_s / self.n
-        ends = []
-        for w0 in range(0, self.w, NAV_WINDOWS):
-            rows = win[w0:w0 + NAV_WINDOWS].ravel()
-            r = reference_values(a["orientation"][rows], a["rate"][rows]).reshape(-1, self.n, 6)
-            ends.append(_solution(r[..., :3], r[..., 3:], self.dt))
-        self.pos_t = np.concatenate([e[0] for e in ends])
-        self.att_t = np.concatenate([e[1] for e in ends])
+        self.dt = window_s / n
+        self._ref_rows: tuple[np.ndarray, np.ndarray] | None = None  # orientations and rates not yet navigated
+        self._ref_ends: list[tuple[np.ndarray, np.ndarray]] = []
+        self._ref_done = 0
+        self._tracks: dict[str, _Track] = {}
 
-    def errors(self, pieces: Iterable[np.ndarray]) -> InsErrors:
+    def reference(self, orientation: np.ndarray, rate: np.ndarray) -> None:
+        """The next rows' orientations and rates: the reference solution of every group they complete."""
+        if self._ref_rows is not None:
+            orientation = np.concatenate([self._ref_rows[0], orientation])
+            rate = np.concatenate([self._ref_rows[1], rate])
+        at = 0
+        while self._ref_done < self.w:
+            m = min(NAV_WINDOWS, self.w - self._ref_done)
+            k = m * self.n
+            if orientation.size - at < k:
+                break
+            ref = reference_values(orientation[at:at + k], rate[at:at + k]).reshape(m, self.n, 6)
+            self._ref_ends.append(_solution(ref[..., :3], ref[..., 3:], self.dt))
+            at += k
+            self._ref_done += m
+        self._ref_rows = (orientation[at:].copy(), rate[at:].copy()) if at < orientation.size else None
+
+    def add(self, name: str, piece: np.ndarray) -> None:
+        """Output set `name`'s values (rows, 6) of its next rows: the windows they complete navigated."""
+        track = self._tracks.setdefault(name, _Track(carry=np.zeros((0, 6)), ends=[]))
+        v = np.asarray(piece, dtype=float)
+        buf = np.concatenate([track.carry, v]) if track.carry.shape[0] else v
         n = self.n
-        dist: list[np.ndarray] = []
-        ang: list[np.ndarray] = []
-        carry = np.zeros((0, 6))
-        w0 = 0
-        for piece in pieces:
-            v = np.asarray(piece, dtype=float)
-            buf = np.concatenate([carry, v]) if carry.shape[0] else v
-            k = buf.shape[0] // n  # windows complete
-            for j in range(0, k, NAV_WINDOWS):
-                m = min(NAV_WINDOWS, k - j)
-                vw = buf[j * n:(j + m) * n].reshape(m, n, 6)
-                pos, att = _solution(vw[..., :3], vw[..., 3:], self.dt)
-                d, g = _errors(pos, att, self.pos_t[w0:w0 + m], self.att_t[w0:w0 + m])
-                dist.append(d)
-                ang.append(g)
-                w0 += m
-            carry = buf[k * n:].copy()
-        if w0 != self.w or carry.shape[0]:
-            raise ValueError(f"outputs of {w0 * n + carry.shape[0]} rows given for {self.w} windows of {n} rows")
+        k = buf.shape[0] // n  # windows complete
+        for j in range(0, k, NAV_WINDOWS):
+            m = min(NAV_WINDOWS, k - j)
+            vw = buf[j * n:(j + m) * n].reshape(m, n, 6)
+            track.ends.append((track.done, *_solution(vw[..., :3], vw[..., 3:], self.dt)))
+            track.done += m
+        track.carry = buf[k * n:].copy()
+
+    def errors(self, name: str) -> InsErrors:
+        """Output set `name`'s errors averaged over the windows (every row of it and of the reference in)."""
+        track = self._tracks.get(name, _Track(carry=np.zeros((0, 6)), ends=[]))
+        n = self.n
+        if track.done != self.w or track.carry.shape[0]:
+            raise ValueError(f"outputs of {track.done * n + track.carry.shape[0]} rows given for {self.w} "
+                             f"windows of {n} rows")
+        if self._ref_done != self.w:
+            held = 0 if self._ref_rows is None else self._ref_rows[0].size
+            raise ValueError(f"reference of {self._ref_done * n + held} rows given for {self.w} windows of {n} rows")
+        pos_t = np.concatenate([e[0] for e in self._ref_ends])
+        att_t = np.concatenate([e[1] for e in self._ref_ends])
+        dist, ang = [], []
+        for w0, pos, att in track.ends:
+            m = pos.shape[0]
+            d, g = _errors(pos, att, pos_t[w0:w0 + m], att_t[w0:w0 + m])
+            dist.append(d)
+            ang.append(g)
         dd, aa = np.concatenate(dist), np.concatenate(ang)
         return InsErrors(position_m=float(dd.mean()), attitude_deg=float(aa.mean()),
                          position_m_max=float(dd.max()), n_windows=self.w, window_s=self.window_s)
+
+
+class WindowNavigation:
+    """The INS test's navigation of the windows `win` (W, n) of `window_rows` in the campaign arrays `a`:
+    the reference solution once, then `errors` of an output set given in pieces of rows (in `win.ravel()`
+    order, any sizes): each window is navigated when its rows are in (`NavigationStream`)."""
+
+    def __init__(self, a: dict[str, np.ndarray], win: np.ndarray, window_s: float = DEFAULT_WINDOW_S) -> None:
+        self.w, self.n = win.shape
+        rows = win.ravel()
+        self._stream = NavigationStream(self.w, self.n, window_s)
+        self._stream.reference(a["orientation"][rows], a["rate"][rows])
+        self._sets = 0
+
+    def errors(self, pieces: Iterable[np.ndarray]) -> InsErrors:
+        name = f"set {self._sets}"
+        self._sets += 1
+        for piece in pieces:
+            self._stream.add(name, piece)
+        return self._stream.errors(name)
 
 
 def ins_errors(a: dict[str, np.ndarray], win: np.ndarray, outputs: dict[str, np.ndarray],
