@@ -87,7 +87,7 @@ def crc16_words(words: np.ndarray) -> np.ndarray:
     reg = np.full(words.shape[0], 0xFFFF, dtype=np.uint16)  # 0xFFFF is its own byte swap
     for j in range(words.shape[1]):
         np.bitwise_xor(reg, words[:, j], out=reg)
-        reg = _CRC_TABLE16_LE[reg]
+        reg = np.take(_CRC_TABLE16_LE, reg)  # the same lookup as indexing, ~20 % faster
     return (reg >> 8) | (reg << 8)  # uint16: the shift left drops the high byte
 
 
@@ -131,15 +131,18 @@ def encode_frames(counter: np.ndarray, accel_g: np.ndarray, gyro_dps: np.ndarray
     words[:, 0] = _SYNC_WORD
     words[:, 1] = np.asarray(counter, dtype=np.int64) % COUNTER_MODULO
     # The seven values as `to_counts` makes them, all at once: value / lsb, rounded, saturated, int16.
-    counts = np.empty((n, 7))
-    counts[:, 0:3] = np.asarray(accel_g, dtype=float).reshape(n, 3)
-    counts[:, 3:6] = np.asarray(gyro_dps, dtype=float).reshape(n, 3)
-    counts[:, 6] = np.asarray(temp_c, dtype=float).reshape(n)
-    counts /= _VALUE_LSB
+    # One row per value (7, n): an (n, 7) or (n, 3) block is a loop of 3 or 7 per frame in numpy, slow.
+    counts = np.empty((7, n))
+    counts[0:3] = np.asarray(accel_g, dtype=float).reshape(n, 3).T
+    counts[3:6] = np.asarray(gyro_dps, dtype=float).reshape(n, 3).T
+    counts[6] = np.asarray(temp_c, dtype=float).reshape(n)
+    counts /= _VALUE_LSB[:, None]
     np.rint(counts, out=counts)
     np.maximum(counts, -32768, out=counts)
     np.minimum(counts, 32767, out=counts)
-    np.copyto(words[:, _VALUE_WORDS].view("<i2"), counts, casting="unsafe")  # in range: the int16 itself
+    values = words[:, _VALUE_WORDS].view("<i2")
+    for j in range(7):
+        np.copyto(values[:, j], counts[j], casting="unsafe")  # in range: the int16 itself
     words[:, 9] = crc16_words(words[:, _CRC_WORDS])
     return words.tobytes()
 

@@ -21,6 +21,7 @@ from .chamber_plant import ChamberParams, ChamberPlant
 from .table_plant import TableParams, TablePlant
 
 HISTORY_S = 6 * 3600.0  # how far back IMU temperatures can be asked for
+_FEW_RUNS = 64  # horizons given in at most this many runs of one value are looked up run by run
 
 
 @dataclass
@@ -180,7 +181,19 @@ class SimWorld:
         hi = min(int(np.searchsorted(ht, times.max(), side="left")) + 1, self._n)
         out = np.interp(times, ht[lo:hi], self._hist[lo:hi, column])
         if until is not None:
-            last = np.searchsorted(ht, until + 1e-9, side="right") - 1  # the grid step advance(until) ended at
+            ends = np.asarray(until, dtype=float) + 1e-9
+            # Runs of one horizon (a chunk made on demand has one per clock advance it covers): each run's
+            # grid step found once, not once per time; the same steps and values as per time.
+            cuts = np.flatnonzero(ends[1:] != ends[:-1]) + 1
+            if cuts.size < _FEW_RUNS:
+                bounds = [0, *cuts.tolist(), ends.size]
+                steps = np.searchsorted(ht, ends[bounds[:-1]], side="right") - 1
+                for a, b, last in zip(bounds[:-1], bounds[1:], steps.tolist()):
+                    after = times[a:b] > ht[last]  # the grid step advance(until) ended at
+                    if after.any():
+                        out[a:b][after] = self._hist[last, column]
+                return out
+            last = np.searchsorted(ht, ends, side="right") - 1  # the grid step advance(until) ended at
             after = times > ht[last]
             if after.any():
                 out[after] = self._hist[last[after], column]
@@ -215,13 +228,16 @@ class SimWorld:
         n = times.size
         up = up_vector(self.orientation)
         rate = self.table.rate_at(times)
+        rate_dps = np.empty((n, 3))
+        for j in range(3):  # rate * up, a column at a time (an (n, 3) product is a loop of 3 per sample)
+            np.multiply(rate, up[j], out=rate_dps[:, j])
         return ImuInputs(
             t_s=times,
             run=np.full(n, self.run, dtype=np.int64),
             t_on_s=times - self.t_on,
             temp_c=self.imu_temperature_at(times, history_until),
             force_g=np.broadcast_to(up, (n, 3)),  # one up vector for every sample: a read-only view
-            rate_dps=rate[:, None] * up[None, :],
+            rate_dps=rate_dps,
         )
 
     # --- what the operator does -------------------------------------------------------

@@ -88,6 +88,9 @@ class TriadModel:
             if not u[:, j].any():
                 continue
             np.matmul(powers, self.scale[:, j, :].T, out=term)
-            term *= u[:, j: j + 1]
+            if u.strides[0] == 0:  # one reference for every sample (a broadcast): times its scalar, the same
+                term *= u[0, j]
+            else:
+                term *= u[:, j: j + 1]
             err += term
         return err

@@ -156,11 +156,11 @@ class ImuModel:
     ) -> tuple[np.ndarray, ModelState]:
         """(N, 6) outputs [accel g, gyro deg/s] with noise (none when rng is None), and the new state."""
         err, new = self.deterministic_error(inputs, state, rng)
-        n = err.shape[0]
-        # out = truth + err, truth = [force | rate]: added in place, the same sums without the temporaries.
-        out = np.empty((n, 6))
-        np.add(np.asarray(inputs.force_g, float).reshape(n, 3), err[:, :3], out=out[:, :3])
-        np.add(np.asarray(inputs.rate_dps, float).reshape(n, 3), err[:, 3:], out=out[:, 3:])
+        # out = truth + err, truth = [force | rate]: added into err (a new array), the same sums bit for bit
+        # (addition commutes), column by column (an (n, 3) half of an (n, 6) array is a loop of 3 per row).
+        out = err
+        _add_truth(out[:, :3], inputs.force_g)
+        _add_truth(out[:, 3:], inputs.rate_dps)
         if rng is not None:
             noise = rng.standard_normal(out.shape)
             noise *= self.noise_sigma(sample_rate_hz)[None, :]
@@ -224,6 +224,18 @@ class ImuModel:
                 out.effects[name] = effect_from_dict(name, eff) if isinstance(eff, Mapping) else eff
         out.__post_init__()
         return out
+
+
+def _add_truth(out: np.ndarray, truth: Any) -> None:
+    """out += truth for an (n, 3) view, column by column; a broadcast truth (one vector for every sample,
+    as the simulated IMU's force) is added as the scalars it repeats: the same sums."""
+    n = out.shape[0]
+    if n == 0:
+        return
+    u = np.asarray(truth, dtype=float).reshape(n, 3)
+    for j in range(3):
+        col = out[:, j]
+        np.add(col, u[0, j] if u.strides[0] == 0 else u[:, j], out=col)
 
 
 def _copy_state(state: ModelState) -> ModelState:

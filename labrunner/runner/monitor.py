@@ -29,7 +29,21 @@ def average_block(rec: ImuRecord, *, start: int, t0_s: float, rate_hz: float, av
         return None
     per_bin = max(1, int(round(average_s * rate_hz)))
     offs = rec.counter - (start + 1)
-    bins = offs // per_bin
+    t = (t0_s + (offs + 1) / rate_hz).astype(float)
+    columns = (rec.accel_g, rec.gyro_dps, rec.temp_c, t)
+    means = _full_bin_means(offs, per_bin, columns)
+    if means is None:
+        means = _bin_means(offs // per_bin, columns)
+    accel, gyro, temp, t_rows = means
+    return SampleBlock(kind="monitor", step_idx=None, run=run, orientation=orientation, t0_s=float(t_rows[0]),
+                       rate_hz=1.0 / average_s,
+                       counter=np.rint((t_rows - t_rows[0]) / average_s).astype(np.int64),
+                       accel_g=accel, gyro_dps=gyro, temp_c=temp,
+                       chamber=np.asarray(chamber, dtype=float), table=np.array([(t0_s, 0.0)]))
+
+
+def _bin_means(bins: np.ndarray, columns: tuple[np.ndarray, ...]) -> list[np.ndarray]:
+    """Means of each array of `columns` (rows per frame) over the frames of each bin, bins in ascending order."""
     if bins.size > 1 and np.all(bins[1:] >= bins[:-1]):  # a record's counters ascend: bins without a sort
         first = np.concatenate(([0], np.flatnonzero(bins[1:] != bins[:-1]) + 1))
         counts = np.diff(np.append(first, bins.size))
@@ -46,12 +60,33 @@ def average_block(rec: ImuRecord, *, start: int, t0_s: float, rate_hz: float, av
             out[:, j] = np.bincount(inv, weights=flat[:, j], minlength=n_bins)
         return (out / counts[:, None]).reshape((n_bins,) + a.shape[1:])
 
-    t_rows = means((t0_s + (offs + 1) / rate_hz).astype(float))
-    return SampleBlock(kind="monitor", step_idx=None, run=run, orientation=orientation, t0_s=float(t_rows[0]),
-                       rate_hz=1.0 / average_s,
-                       counter=np.rint((t_rows - t_rows[0]) / average_s).astype(np.int64),
-                       accel_g=means(rec.accel_g), gyro_dps=means(rec.gyro_dps), temp_c=means(rec.temp_c),
-                       chamber=np.asarray(chamber, dtype=float), table=np.array([(t0_s, 0.0)]))
+    return [means(a) for a in columns]
+
+
+def _full_bin_means(offs: np.ndarray, per_bin: int, columns: tuple[np.ndarray, ...]) -> list[np.ndarray] | None:
+    """`_bin_means` when every bin is full (the frames are 0, 1, ... n - 1 after the start, n a whole number of
+    bins: a monitor stretch without a lost frame), to the bit; None otherwise. The columns are laid out as
+    (value, frame in its bin, bin) and summed over the frame axis from 0.0, one bin's frames after another in
+    their order as bincount adds them (the bins are the contiguous inner axis, so numpy adds whole rows of bins,
+    not pairwise), in one reduction instead of a bincount per column."""
+    n = offs.size
+    n_bins = n // per_bin
+    # One bin: numpy would drop the bin axis and sum each column pairwise (another rounding): not here.
+    if n_bins < 2 or n % per_bin or offs[0] != 0 or offs[-1] != n - 1 or not bool(np.all(np.diff(offs) == 1)):
+        return None
+    widths = [int(np.prod(a.shape[1:], dtype=np.int64)) for a in columns]
+    stacked = np.empty((sum(widths), per_bin, n_bins))
+    row = 0
+    for a, w in zip(columns, widths):
+        stacked[row:row + w] = a.reshape(n_bins, per_bin, w).transpose(2, 1, 0)
+        row += w
+    sums = np.add.reduce(stacked, axis=1, initial=0.0)
+    sums /= per_bin  # a count of per_bin in every bin (bincount's means divide by the int64 counts: the same)
+    out, row = [], 0
+    for a, w in zip(columns, widths):
+        out.append(np.ascontiguousarray(sums[row:row + w].T).reshape((n_bins,) + a.shape[1:]))
+        row += w
+    return out
 
 
 @dataclass

@@ -1,0 +1,148 @@
+"""The recording's CPU shortcuts (issue 15, target 1) give the bits of what they replace: the model's outputs
+added column by column, the baseline's broadcast reference multiplied as a scalar, the monitor's full bins
+summed in one reduction, the temperature history's horizons looked up run by run, the table's rate times the
+up vector column by column."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from labrunner.imu.baseline import thermal_powers
+from labrunner.imu.inputs import ImuInputs
+from labrunner.imu.model import ModelState, default_imu_model
+from labrunner.runner.monitor import _bin_means, _full_bin_means, average_block
+from labrunner.sims.world import SimLabConfig, SimWorld
+
+
+def _simulate_before(model, inputs, rate_hz, rng, state):  # type: ignore[no-untyped-def]
+    """`ImuModel.simulate` as it was: truth + err into a new array by halves, then the noise."""
+    err, new = model.deterministic_error(inputs, state, rng)
+    n = err.shape[0]
+    out = np.empty((n, 6))
+    np.add(np.asarray(inputs.force_g, float).reshape(n, 3), err[:, :3], out=out[:, :3])
+    np.add(np.asarray(inputs.rate_dps, float).reshape(n, 3), err[:, 3:], out=out[:, 3:])
+    if rng is not None:
+        noise = rng.standard_normal(out.shape)
+        noise *= model.noise_sigma(rate_hz)[None, :]
+        out += noise
+    return out, new
+
+
+def _inputs(n: int, rng: np.random.Generator, broadcast: bool) -> ImuInputs:
+    t = 100.0 + np.arange(n) / 50.0
+    up = np.array([0.0, -1.0, 0.0])
+    force = np.broadcast_to(up, (n, 3)) if broadcast else rng.normal(0, 1, (n, 3))
+    rate = rng.normal(0, 80, n)
+    rate[::7] = -0.0
+    return ImuInputs(t_s=t, run=np.ones(n, dtype=np.int64), t_on_s=t - 90.0, temp_c=rng.uniform(-30, 60, n),
+                     force_g=force, rate_dps=rate[:, None] * up[None, :] if broadcast else rng.normal(0, 50, (n, 3)))
+
+
+@pytest.mark.parametrize("broadcast", [True, False])
+@pytest.mark.parametrize("noise", [True, False])
+def test_simulate_equals_the_sum_by_halves(broadcast: bool, noise: bool) -> None:
+    model = default_imu_model(seed=4)
+    for n in (0, 1, 2, 1500):
+        inputs = _inputs(n, np.random.default_rng(n), broadcast)
+        rng_a, rng_b = (np.random.default_rng(9), np.random.default_rng(9)) if noise else (None, None)
+        got, _ = model.simulate(inputs, 50.0, rng_a, ModelState())
+        want, _ = _simulate_before(model, inputs, 50.0, rng_b, ModelState())
+        assert got.shape == want.shape and got.tobytes() == want.tobytes()
+
+
+def test_baseline_of_a_broadcast_reference_equals_the_column_product() -> None:
+    model = default_imu_model()
+    rng = np.random.default_rng(3)
+    powers = thermal_powers(rng.uniform(-30, 60, 900))
+    for up in ([0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.3, -0.0, 0.7], [np.nan, 0.0, 0.0]):
+        ref = np.broadcast_to(np.array(up), (900, 3))
+        full = np.array(ref)  # the same reference as an (n, 3) array: the column product
+        for triad in (model.accel, model.gyro):
+            assert triad.error_at_powers(powers, ref).tobytes() == triad.error_at_powers(powers, full).tobytes()
+
+
+def _columns(n: int, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    accel = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-3, 6, (n, 3))
+    accel[rng.random((n, 3)) < 0.2] = -0.0
+    gyro = np.rint(rng.normal(0, 300, (n, 3))) * 0.00875
+    gyro[::11, 1] = np.nan
+    temp = rng.normal(25, 0.01, n)
+    temp[: max(1, n // 3)] = -0.0  # a bin of negative zeros: bincount's sum from 0.0 is +0.0
+    return accel, gyro, temp, 1e5 + np.arange(n) / 50.0
+
+
+@pytest.mark.parametrize("per_bin", [1, 2, 7, 8, 9, 50, 129])
+@pytest.mark.parametrize("n_bins", [2, 3, 8, 30, 101])
+def test_full_bins_summed_at_once_equal_the_bincount_means(per_bin: int, n_bins: int) -> None:
+    n = per_bin * n_bins
+    columns = _columns(n, np.random.default_rng(per_bin * 1000 + n_bins))
+    offs = np.arange(n)
+    fast = _full_bin_means(offs, per_bin, columns)
+    assert fast is not None
+    for got, want in zip(fast, _bin_means(offs // per_bin, columns), strict=True):
+        assert got.shape == want.shape and got.tobytes() == want.tobytes()
+
+
+def test_bins_that_are_not_all_full_take_the_bincount_path() -> None:
+    offs = np.arange(100)
+    columns = _columns(100, np.random.default_rng(1))
+    assert _full_bin_means(offs, 100, columns) is None  # one bin: numpy would sum it pairwise
+    assert _full_bin_means(offs[:99], 50, tuple(c[:99] for c in columns)) is None  # a partial bin
+    assert _full_bin_means(np.delete(np.arange(101), 40), 50, columns) is None  # a frame lost
+    assert _full_bin_means(offs + 1, 50, columns) is None  # not from the stretch's first frame
+
+
+def test_a_monitor_stretch_is_the_bincount_means() -> None:
+    from labrunner.drivers.protocols import ImuRecord
+
+    rng = np.random.default_rng(8)
+    n = 1500
+    accel, gyro, temp, _ = _columns(n, rng)
+    rec = ImuRecord(counter=np.arange(401, 401 + n), accel_g=accel, gyro_dps=gyro, temp_c=temp, expected=n,
+                    dropped=0, corrupt=0, lsb=None)
+    block = average_block(rec, start=400, t0_s=1234.5, rate_hz=50.0, average_s=1.0, run=2, orientation="y_up",
+                          chamber=np.zeros((2, 2)))
+    assert block is not None
+    offs = rec.counter - 401
+    t = (1234.5 + (offs + 1) / 50.0).astype(float)
+    want = _bin_means(offs // 50, (accel, gyro, temp, t))
+    for got, exp in zip((block.accel_g, block.gyro_dps, block.temp_c), want[:3], strict=True):
+        assert got.tobytes() == exp.tobytes()
+    assert block.t0_s == float(want[3][0])
+
+
+def _history_per_time(world: SimWorld, times: np.ndarray, column: int, until: np.ndarray) -> np.ndarray:
+    """`SimWorld._history` with a horizon looked up for every time (as it was)."""
+    ht = world._hist[: world._n, 0]
+    out = np.interp(times, ht, world._hist[: world._n, column])
+    last = np.searchsorted(ht, until + 1e-9, side="right") - 1
+    after = times > ht[last]
+    out[after] = world._hist[last[after], column]
+    return out
+
+
+def test_horizons_looked_up_run_by_run_equal_the_lookup_per_time() -> None:
+    world = SimWorld(SimLabConfig(seed=2), start_t=0.0)
+    world.chamber.set_setpoint(-20.0)
+    world.advance(4000.0)
+    rng = np.random.default_rng(6)
+    for runs in (1, 3, 40, 63, 64, 65, 400):
+        times = np.sort(rng.uniform(100.0, 3990.0, 1500))
+        edges = np.sort(rng.choice(np.arange(1, 1500), runs - 1, replace=False)) if runs > 1 else np.zeros(0, int)
+        bounds = [0, *edges.tolist(), 1500]
+        until = np.concatenate([np.full(b - a, times[b - 1] + rng.uniform(-1.5, 0.0)) for a, b in
+                                zip(bounds[:-1], bounds[1:])])
+        for column in (1, 2):
+            got = world._history(times, column, until)
+            assert got.tobytes() == _history_per_time(world, times, column, until).tobytes()
+
+
+def test_the_table_rate_times_the_up_vector_column_by_column() -> None:
+    world = SimWorld(SimLabConfig(seed=1, orientation="y_down"), start_t=0.0)
+    world.table.command(0.0, -73.0)
+    times = np.arange(500) / 50.0
+    world.advance(float(times[-1]))
+    inputs = world.imu_inputs(times)
+    want = world.table.rate_at(times)[:, None] * np.array([0.0, -1.0, 0.0])[None, :]
+    assert inputs.rate_dps.tobytes() == want.tobytes()
