@@ -132,6 +132,40 @@ INS_KEYS = ("orientation", "temp", "rate")  # what the INS test reads of a windo
 DRAW_CHUNK = 1 << 20  # rows of the random split's stream drawn at once when its held-out rows are counted
 
 
+class _WindowRows:
+    """The INS windows' campaign positions (W, n), in increasing order, held as runs of consecutive
+    positions (a few per window instead of n positions: 400 windows of 50 Hz rows are 9.6 MB as int64)."""
+
+    def __init__(self, shape: tuple[int, int], first: np.ndarray, start: np.ndarray) -> None:
+        self.shape = shape
+        self.size = shape[0] * shape[1]
+        self.first = first  # (R,) each run's first index in the windows' rows (`win.ravel()`)
+        self.start = start  # (R,) its first campaign position
+        self.stop = np.append(first[1:], self.size)
+
+    @classmethod
+    def of(cls, win: np.ndarray) -> _WindowRows | None:
+        """The runs of `win` (W, n) (None: no window)."""
+        if win.size == 0:
+            return None
+        flat = win.ravel()
+        step = np.diff(flat)
+        assert np.all(step > 0), "the INS windows' rows are not in increasing order"
+        first = np.concatenate([[0], np.flatnonzero(step != 1) + 1])
+        return cls((int(win.shape[0]), int(win.shape[1])), first, flat[first])
+
+    def below(self, g: int) -> int:
+        """How many of the windows' rows lie before campaign position g."""
+        r = int(np.searchsorted(self.start, g)) - 1  # the last run starting before g
+        return 0 if r < 0 else min(int(self.first[r]) + g - int(self.start[r]), int(self.stop[r]))
+
+    def positions(self, lo: int, hi: int) -> np.ndarray:
+        """The campaign positions of the windows' rows lo .. hi (`win.ravel()[lo:hi]`)."""
+        idx = np.arange(lo, hi)
+        k = np.searchsorted(self.first, idx, side="right") - 1
+        return self.start[k] + (idx - self.first[k])
+
+
 class _Pick:
     """Rows picked by rank among the rows of a mask, met chunk by chunk in order (ranks None: all)."""
 
@@ -226,7 +260,7 @@ class _Split:
     px4: Px4Stream = field(default_factory=Px4Stream)
     runs: RowRuns | None = None
     static_test: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None  # the INS rows, when pieces cannot tell
-    win: np.ndarray | None = None  # (W, n) campaign positions of the INS windows
+    win: _WindowRows | None = None  # the INS windows' campaign positions (None: no window)
 
     @property
     def random(self) -> bool:
@@ -370,10 +404,12 @@ def evaluate_chunks(source: RowSource, n_rows: int, records: Records, steps: Tem
                 s.regather = True  # the offset rows gathered were drawn by the wrong stream: again, next pass
     for s in live:
         if s.runs is not None:
-            s.win = s.runs.window_positions()
-            if s.win is None:
+            win = s.runs.window_positions()
+            if win is None:
                 log.info("%s: INS windows chosen from the rows themselves (a gap threshold within a run)", s.res.name)
                 s.static_test = []
+            else:
+                s.win = _WindowRows.of(win)
             s.runs = None
     live = [s for s in live if s.fitted]
     _more_passes(source, records, n_rows, live, holdout_fraction, progress)
@@ -457,7 +493,7 @@ def _more_passes(source: RowSource, records: Records, n_rows: int, live: list[_S
                 pos = np.concatenate([p[0] for p in s.static_test])
                 idx = windows(np.concatenate([p[1] for p in s.static_test]),
                               np.concatenate([p[2] for p in s.static_test]))
-                s.win = pos[idx] if idx.size else idx
+                s.win = _WindowRows.of(pos[idx] if idx.size else idx)
                 s.static_test = None
 
 
@@ -483,7 +519,7 @@ def _score_pass(source: RowSource, records: Records, n_rows: int, live: list[_Sp
         batches[id(s)] = _Batches(ScoreSums(s.models, len(records), offsets))
         picks[id(s)] = _Pick(s.test_ranks)
         s.test_ranks = None
-        if s.win is not None and s.win.size:
+        if s.win is not None:
             ins[id(s)] = _InsStream(s.models, s.win)
         s.win = None
     _score_chunks(source, records, n_rows, live, fraction, batches, picks, ins)
@@ -514,38 +550,36 @@ def _empty_arrays() -> dict[str, Any]:
 
 
 class _InsStream:
-    """`evaluation.ins_test` of one split, fed by the scoring pass: its windows' rows (campaign positions
-    `win`, (W, n), in increasing order) are gathered as they stream past, and every INS_CHUNK of them (in
-    `win.ravel()` order) is compensated by each model and navigated at once (`ins.NavigationStream`):
-    at most INS_CHUNK rows wait, not every window's (up to MAX_WINDOWS minutes, 1.2 M rows at 50 Hz, per
-    split). The groups are those the chunked code has always compensated: an RBF network's outputs depend
-    on the rows computed with them at the last bit; up to INS_CHUNK rows (the paper campaign: 288 000)
-    the whole-frame code's, bit for bit."""
+    """`evaluation.ins_test` of one split, fed by the scoring pass: its windows' rows are gathered as they
+    stream past, and every INS_CHUNK of them (in `win.ravel()` order) is compensated by each model and
+    navigated at once (`ins.NavigationStream`): at most INS_CHUNK rows wait, not every window's (up to
+    MAX_WINDOWS minutes, 1.2 M rows at 50 Hz, per split). The groups are those the chunked code has
+    always compensated: an RBF network's outputs depend on the rows computed with them at the last bit;
+    up to INS_CHUNK rows (the paper campaign: 288 000) the whole-frame code's, bit for bit."""
 
-    def __init__(self, models: Mapping[str, Scored], win: np.ndarray) -> None:
+    def __init__(self, models: Mapping[str, Scored], win: _WindowRows) -> None:
         self.models: dict[str, Scored | None] = {"raw": None, **models}
-        self.flat = win.ravel()
-        assert np.all(np.diff(self.flat) > 0), "the INS windows' rows are not in increasing order"
+        self.win = win
         self.nav = NavigationStream(*win.shape)
-        self.next = 0  # rows of `flat` gathered so far
+        self.next = 0  # the windows' rows gathered so far
         self.parts: list[dict[str, Any]] = []
         self.held = 0
 
     def add(self, g0: int, a: dict[str, Any]) -> None:
         """The rows of the chunk whose first row is the campaign's g0 (chunks in order)."""
-        hi = int(np.searchsorted(self.flat, g0 + int(a["t"].size)))
+        hi = self.win.below(g0 + int(a["t"].size))
         if hi == self.next:
             return
-        self.parts.append(take_rows(a, self.flat[self.next:hi] - g0, INS_KEYS))
+        self.parts.append(take_rows(a, self.win.positions(self.next, hi) - g0, INS_KEYS))
         self.held += hi - self.next
         self.next = hi
         while self.held >= INS_CHUNK:
             self._group(INS_CHUNK)
 
     def close(self, res: SplitResult) -> None:
-        if self.next != self.flat.size:
+        if self.next != self.win.size:
             raise UserError(f"{res.name}: the INS windows' rows were not all read ({self.next:,} of "
-                            f"{self.flat.size:,}): fit it again")
+                            f"{self.win.size:,}): fit it again")
         if self.held:
             self._group(self.held)
         res.ins = {name: self.nav.errors(name) for name in self.models}

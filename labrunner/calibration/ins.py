@@ -296,15 +296,17 @@ class NavigationStream:
         """Output set `name`'s values (rows, 6) of its next rows: the windows they complete navigated."""
         track = self._tracks.setdefault(name, _Track(carry=np.zeros((0, 6)), ends=[]))
         v = np.asarray(piece, dtype=float)
-        buf = np.concatenate([track.carry, v]) if track.carry.shape[0] else v
+        c = track.carry.shape[0]
         n = self.n
-        k = buf.shape[0] // n  # windows complete
-        for j in range(0, k, NAV_WINDOWS):
+        k = (c + v.shape[0]) // n  # windows complete
+        for j in range(0, k, NAV_WINDOWS):  # groups of windows from the carried rows on
             m = min(NAV_WINDOWS, k - j)
-            vw = buf[j * n:(j + m) * n].reshape(m, n, 6)
+            lo, hi = j * n - c, (j + m) * n - c  # the group's rows in `v`
+            vw = (np.concatenate([track.carry, v[:hi]]) if lo < 0 else v[lo:hi]).reshape(m, n, 6)
             track.ends.append((track.done, *_solution(vw[..., :3], vw[..., 3:], self.dt)))
             track.done += m
-        track.carry = buf[k * n:].copy()
+        rest = k * n - c  # the rows of `v` past the last complete window (the carry's, when none completes)
+        track.carry = np.concatenate([track.carry, v]) if rest < 0 else v[rest:].copy()
 
     def errors(self, name: str) -> InsErrors:
         """Output set `name`'s errors averaged over the windows (every row of it and of the reference in)."""

@@ -102,7 +102,9 @@ def test_the_ins_windows_rows_are_compensated_in_the_groups_of_ins_chunk_rows_as
     want = ins_errors(a, win, values)
     for size in (4099, 777, rows):
         groups.clear()
-        stream = ec._InsStream({"m": object()}, win)  # type: ignore[dict-item]
+        rows_of = ec._WindowRows.of(win)
+        assert rows_of is not None and rows_of.first.size < 2 * w  # runs of consecutive rows, not rows
+        stream = ec._InsStream({"m": object()}, rows_of)  # type: ignore[dict-item]
         for g0 in range(0, rows, size):
             stream.add(g0, take_rows(a, slice(g0, g0 + size), ("t", "orientation", "temp", "rate")))
             assert stream.held < 1000
@@ -119,7 +121,9 @@ def test_the_ins_windows_rows_are_compensated_in_the_groups_of_ins_chunk_rows_as
 def test_ins_windows_not_all_read_are_refused() -> None:
     rng = np.random.default_rng(5)
     a = _arrays(rng, 5000)
-    stream = ec._InsStream({}, _windows(rng, 5000, 4, 300))
+    win = ec._WindowRows.of(_windows(rng, 5000, 4, 300))
+    assert win is not None
+    stream = ec._InsStream({}, win)
     stream.add(0, take_rows(a, slice(0, 2000), ("t", "orientation", "temp", "rate")))
     with pytest.raises(UserError, match="the INS windows' rows were not all read"):
         stream.close(SplitResult(name="between_rates", description=""))
@@ -154,3 +158,19 @@ def test_the_chunked_evaluation_with_small_ins_groups_still_equals_the_whole_fra
 
     assert dicts(chunked) == dicts(whole)
     assert sizes.count(1009) >= 4 and len(sizes) > sizes.count(1009)  # full groups, and each split's last
+
+
+def test_window_rows_held_as_runs_give_the_windows_positions() -> None:
+    """`_WindowRows`: the windows' rows as runs of consecutive positions (rows dropped within windows cut
+    them): `positions` and `below` as the (W, n) array's."""
+    rng = np.random.default_rng(11)
+    pos = np.cumsum(rng.choice([1, 1, 1, 1, 2, 7, 3000], size=50 * 120))
+    win = pos.reshape(50, 120)
+    rows = ec._WindowRows.of(win)
+    assert rows is not None and rows.shape == (50, 120) and rows.first.size < pos.size / 2
+    flat = win.ravel()
+    for lo, hi in ((0, flat.size), (0, 1), (17, 4000), (flat.size - 1, flat.size), (5, 5)):
+        np.testing.assert_array_equal(rows.positions(lo, hi), flat[lo:hi])
+    for g in (0, int(flat[0]), int(flat[0]) + 1, *rng.integers(0, int(flat[-1]) + 2, 500).tolist()):
+        assert rows.below(g) == int(np.searchsorted(flat, g)), g
+    assert ec._WindowRows.of(np.zeros((0, 0), dtype=np.int64)) is None
