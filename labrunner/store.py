@@ -239,6 +239,40 @@ _NEXT_STEP = (select(steps.c.idx)
               .where(steps.c.campaign_id == bindparam("w_campaign"), steps.c.idx >= bindparam("w_from"),
                      steps.c.status != "done").order_by(steps.c.idx).limit(1))
 _PENDING = select(control.c.request).where(control.c.campaign_id == bindparam("w_campaign"))
+# On SQLite, each of them compiled once more, to its SQL text and the order of its values (by the keys of
+# the parameters it is given): statement -> (SQL, for each value the parameter's name or a constant).
+_PREPARED: dict[tuple[int, tuple[str, ...]], tuple[str, tuple[tuple[bool, Any], ...]] | None] = {}
+
+
+def _hot(conn: Connection, stmt: Any, params: dict[str, Any]) -> CursorResult[Any]:
+    """Run one of the hot statements above. On SQLite as its SQL text with the values in order through
+    `exec_driver_sql`: the engine's events fire and DBAPI errors are wrapped as for any statement, but the
+    per-call compiled-cache lookup, parameter processing and execution context of `execute` (most of a small
+    write's CPU there) are saved; the hot statements' values need no conversion for SQLite's driver (int,
+    float, str, bytes, None), so the rows are the same. Other databases: `execute`."""
+    if conn.dialect.name != "sqlite":
+        return conn.execute(stmt, params)
+    key = (id(stmt), tuple(params))
+    if key not in _PREPARED:
+        _PREPARED[key] = _prepare(conn, stmt, list(params))
+    prepared = _PREPARED[key]
+    if prepared is None:
+        return conn.execute(stmt, params)
+    sql, order = prepared
+    return conn.exec_driver_sql(sql, tuple(params[v] if named else v for named, v in order))
+
+
+def _prepare(conn: Connection, stmt: Any, keys: list[str]) -> tuple[str, tuple[tuple[bool, Any], ...]] | None:
+    """A statement's SQL for this connection's (positional) dialect and where each value comes from: a
+    parameter by name, or a constant of the statement (`!= 'done'`, `+ 1`); None when that cannot be said
+    plainly (escaped bind names, a named paramstyle): then it runs through `execute`."""
+    compiled = stmt.compile(dialect=conn.dialect, column_keys=keys)
+    names = compiled.positiontup
+    if not compiled.positional or names is None or compiled.escaped_bind_names:
+        return None
+    order = tuple((True, name) if name in keys else (False, compiled.binds[name].effective_value) for name in names)
+    return compiled.string, order
+
 
 
 @dataclass
@@ -1101,7 +1135,7 @@ class Store:
             if also:
                 conn.execute(_UPDATE_CAMPAIGN, {"w_id": campaign_id, **also})
             return
-        kept = conn.execute(_RENEW, {"w_id": campaign_id, "w_token": token, "lease_wall": now, **also})
+        kept = _hot(conn, _RENEW, {"w_id": campaign_id, "w_token": token, "lease_wall": now, **also})
         if kept.rowcount != 1:
             self.leases.pop(campaign_id, None)
             self.lost.add(campaign_id)
@@ -1120,7 +1154,7 @@ class Store:
         # found are done still, whoever recorded since.
         start = self._next_from.get(campaign_id, 0)
         with self.reading() as conn:
-            found = conn.execute(_NEXT_STEP, {"w_campaign": campaign_id, "w_from": start}).scalar()
+            found = _hot(conn, _NEXT_STEP, {"w_campaign": campaign_id, "w_from": start}).scalar()
         if found is not None:
             self._next_from[campaign_id] = int(found)
         return found
@@ -1161,7 +1195,7 @@ class Store:
 
     def note_attempt(self, campaign_id: int, step_idx: int) -> None:
         with self.transaction() as conn:
-            conn.execute(_ATTEMPT, {"w_campaign": campaign_id, "w_idx": step_idx})
+            _hot(conn, _ATTEMPT, {"w_campaign": campaign_id, "w_idx": step_idx})
 
     @staticmethod
     def _block_row(campaign_id: int, block: SampleBlock) -> dict[str, Any]:
@@ -1184,8 +1218,8 @@ class Store:
         chamber_mean = float(np.mean(block.chamber[:, 1])) if block.chamber.size else None
         with self.transaction() as conn:
             self._renew(conn, campaign_id, time.time())
-            conn.execute(_INSERT_BLOCK, self._block_row(campaign_id, block))
-            conn.execute(_UPDATE_STEP, {
+            _hot(conn, _INSERT_BLOCK, self._block_row(campaign_id, block))
+            _hot(conn, _UPDATE_STEP, {
                 "w_campaign": campaign_id, "w_idx": block.step_idx, "status": "done", "run": block.run,
                 "t_start": block.t0_s, "t_end": t_end, "n_samples": len(block), "dropped": dropped, "corrupt": corrupt,
                 "imu_temp_c": float(np.mean(block.temp_c)) if len(block) else None, "chamber_c": chamber_mean})
@@ -1197,7 +1231,7 @@ class Store:
     def save_monitor(self, campaign_id: int, block: SampleBlock) -> None:
         with self.transaction() as conn:
             self._renew(conn, campaign_id, time.time())
-            conn.execute(_INSERT_BLOCK, self._block_row(campaign_id, block))
+            _hot(conn, _INSERT_BLOCK, self._block_row(campaign_id, block))
 
     # --- events and control ----------------------------------------------------------------------
 
@@ -1205,7 +1239,7 @@ class Store:
     def _event(conn: Connection, campaign_id: int, t_s: float, kind: str, message: str, *, state: str | None = None,
                step_idx: int | None = None, detail: dict[str, Any] | None = None, wall: float | None = None) -> None:
         log.debug("campaign %d event at t=%.1f s [%s]: %s", campaign_id, t_s, kind, message)
-        conn.execute(_INSERT_EVENT, {
+        _hot(conn, _INSERT_EVENT, {
             "campaign_id": campaign_id, "t_s": t_s, "wall": time.time() if wall is None else wall, "kind": kind,
             "state": state, "step_idx": step_idx, "message": message, "detail": json.dumps(detail) if detail else None})
 
@@ -1235,7 +1269,7 @@ class Store:
 
     def pending_request(self, campaign_id: int) -> str | None:
         with self.reading() as conn:
-            return conn.execute(_PENDING, {"w_campaign": campaign_id}).scalar()
+            return _hot(conn, _PENDING, {"w_campaign": campaign_id}).scalar()
 
     # --- fits ------------------------------------------------------------------------------------
 

@@ -146,3 +146,48 @@ def test_the_table_rate_times_the_up_vector_column_by_column() -> None:
     inputs = world.imu_inputs(times)
     want = world.table.rate_at(times)[:, None] * np.array([0.0, -1.0, 0.0])[None, :]
     assert inputs.rate_dps.tobytes() == want.tobytes()
+
+
+def test_hot_statements_as_driver_sql_write_and_read_what_execute_does(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Every hot statement through `_hot` (SQLite: compiled once, run as driver SQL) against `execute`: the
+    same rows in two stores, the same reads, and the engine's events still see each statement."""
+    from sqlalchemy import event
+
+    from labrunner import store as st
+    from labrunner.procedure import parse_procedure
+    from tests.campaign.conftest import TINY
+
+    p = parse_procedure(TINY, "tiny.yaml")
+    seen: list[str] = []
+    results = []
+    for name, run in (("hot", st._hot), ("execute", lambda conn, stmt, params: conn.execute(stmt, params))):
+        s = st.Store.create(tmp_path / f"{name}.db")
+        cid = s.new_campaign(name=p.name, procedure_text=p.text, procedure_path=None, procedure_sha256=p.sha256,
+                             lab_config={}, mode="sim", sim_config={}, clock_t0=0.0, plan=p.steps(),
+                             lease_token="tok")
+        event.listen(s.engine, "before_cursor_execute", lambda *a, _n=name: seen.append(_n))
+        block = st.SampleBlock(kind="record", step_idx=1, run=2, orientation="x_up", t0_s=5.0, rate_hz=50.0,
+                               counter=np.arange(7), accel_g=np.ones((7, 3)), gyro_dps=np.zeros((7, 3)),
+                               temp_c=np.full(7, 21.5), chamber=np.array([[5.0, 20.0]]), table=np.zeros((1, 2)),
+                               lsb=(0.001, 0.00875, 0.01))
+        with s.transaction() as conn:
+            kept = run(conn, st._RENEW, {"w_id": cid, "w_token": "tok", "lease_wall": 12.5, "clock_last": 3.0})
+            lost = run(conn, st._RENEW, {"w_id": cid, "w_token": "other", "lease_wall": 13.5})
+            run(conn, st._INSERT_BLOCK, s._block_row(cid, block))
+            run(conn, st._ATTEMPT, {"w_campaign": cid, "w_idx": 1})
+            run(conn, st._UPDATE_STEP, {"w_campaign": cid, "w_idx": 1, "status": "done", "n_samples": 7,
+                                        "imu_temp_c": None})
+            run(conn, st._INSERT_EVENT, {"campaign_id": cid, "t_s": 1.0, "wall": 2.0, "kind": "info", "state": None,
+                                         "step_idx": 1, "message": "m", "detail": None})
+            nxt = run(conn, st._NEXT_STEP, {"w_campaign": cid, "w_from": 0}).scalar()
+            pending = run(conn, st._PENDING, {"w_campaign": cid}).scalar()
+        with s.reading() as conn:
+            rows = {t: [tuple(r) for r in conn.exec_driver_sql(f"SELECT * FROM {t} ORDER BY 1, 2")]
+                    for t in ("steps", "sample_blocks", "events")}
+            rows["campaigns"] = [tuple(r) for r in conn.exec_driver_sql(
+                "SELECT lease_token, lease_wall, clock_last FROM campaigns")]  # the rest holds the wall time
+        results.append((kept.rowcount, lost.rowcount, nxt, pending, rows))
+        s.close()
+    assert results[0] == results[1]
+    assert results[0][:3] == (1, 0, 0)
+    assert seen.count("hot") == seen.count("execute") >= 8
