@@ -38,7 +38,7 @@ import numpy as np
 from .compensation import Compensated, compensate
 from .ins import InsErrors, ins_errors, window_rows
 from .px4_reference import Px4Reference, fit_px4
-from .rbf_model import RbfModel
+from .rbf_model import DistinctInputs, RbfModel
 from .records import Records, TemperatureSteps, records_from_labels, reference_values
 from .thermal_poly import PolyModel
 from .triads import ORIENTATIONS, as_channel_dict
@@ -170,6 +170,18 @@ class _Moments:
         return self.shift + m1, np.sqrt(np.maximum(self.s2 / self.n - m1 ** 2, 0.0)), np.sqrt(self.sq / self.n)
 
 
+class _BatchRows:
+    """What every model's sums over a batch of rows share: the rows' records, which rows are static, the
+    rows per record (counted once per batch, not once per model)."""
+
+    def __init__(self, lab: np.ndarray, static: np.ndarray, n_records: int) -> None:
+        self.lab = lab
+        self.static = static
+        self.count = np.bincount(lab, minlength=n_records)
+        self.static_lab = lab[static]
+        self.static_count = np.bincount(self.static_lab, minlength=n_records)
+
+
 class _Scores:
     """One model's running sums over a split's held-out rows, fed chunk by chunk: sample moments,
     per-record error sums, static norms and per-record static means, extrapolated rows."""
@@ -184,21 +196,21 @@ class _Scores:
         self.extrapolated = 0
         self.n = 0
 
-    def add(self, values: np.ndarray, err: np.ndarray, extrap: np.ndarray, lab: np.ndarray,
-            static: np.ndarray) -> None:
+    def add(self, values: np.ndarray, err: np.ndarray, extrap: np.ndarray, rows: _BatchRows) -> None:
         n_rec = self.rec_cnt.size
+        lab = rows.lab
         self.n += err.shape[0]
         self.extrapolated += int(np.count_nonzero(extrap))
         self.samples.add(err)
-        self.rec_cnt += np.bincount(lab, minlength=n_rec)
+        self.rec_cnt += rows.count
         for j in range(6):
             self.rec_sum[:, j] += np.bincount(lab, weights=err[:, j], minlength=n_rec)
-        v = values[static]
+        v = values[rows.static]
         if v.shape[0] == 0:
             return
-        ls = lab[static]
+        ls = rows.static_lab
         self.norms.add(np.column_stack([np.linalg.norm(v[:, :3], axis=1) - 1.0, np.linalg.norm(v[:, 3:], axis=1)]))
-        self.static_cnt += np.bincount(ls, minlength=n_rec)
+        self.static_cnt += rows.static_count
         for j in range(6):
             self.static_sum[:, j] += np.bincount(ls, weights=v[:, j], minlength=n_rec)
 
@@ -233,11 +245,13 @@ def _take(a: dict[str, Any], rows: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def _apply(model: Scored | None, a: dict[str, Any], rows: np.ndarray | None = None,
-           done: dict[int, Compensated] | None = None) -> tuple[np.ndarray, np.ndarray]:
+           done: dict[int, Compensated] | None = None,
+           distinct: DistinctInputs | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Compensated outputs of the given rows (all of `a`'s: None) and their extrapolation flags (model
     None: the raw data). `done` keeps the polynomials' compensations of these rows (by model id): the
-    hybrid network starts from its base polynomial's, which is scored itself. Callers must not modify
-    the arrays returned."""
+    hybrid network starts from its base polynomial's, which is scored itself. `distinct`: the distinct
+    network inputs of `a`'s rows, shared by the networks scored on them. Callers must not modify the
+    arrays returned."""
     if rows is not None:
         a = _take(a, rows)
     y, temp = a["y"], a["temp"]
@@ -254,7 +268,7 @@ def _apply(model: Scored | None, a: dict[str, Any], rows: np.ndarray | None = No
         base = done.get(id(model.base)) if model.base is not None else None
         if model.base is not None and base is None:
             base = done[id(model.base)] = compensate(model.base, y, temp)
-        comp = model.compensate(y, temp, base=base)
+        comp = model.compensate(y, temp, base=base, distinct=distinct)
     return comp.values, comp.extrapolated
 
 
@@ -296,19 +310,23 @@ class ScoreSums:
         self.scored: dict[str, Scored | None] = {"raw": None, **models}
         self.offsets = dict(offsets or {})
         self.sums = {name: _Scores(n_records) for name in self.scored}
+        self.n_records = n_records
         self.n = 0
 
     def add(self, sub: dict[str, np.ndarray], lab: np.ndarray) -> None:
         self.n += int(lab.size)
+        # the outputs as float arrays once, not once per model (the same values)
+        sub = sub | {"y": np.asarray(sub["y"], dtype=float), "temp": np.asarray(sub["temp"], dtype=float)}
         ref = reference_values(sub["orientation"], sub["rate"])
-        static = np.abs(sub["rate"]) < STATIC_RATE_DPS
+        rows = _BatchRows(lab, np.abs(sub["rate"]) < STATIC_RATE_DPS, self.n_records)
         done: dict[int, Compensated] = {}
+        distinct = DistinctInputs(sub["y"], sub["temp"])  # the networks' distinct inputs, found once
         for name, model in self.scored.items():
-            values, extrap = _apply(model, sub, done=done)
+            values, extrap = _apply(model, sub, done=done, distinct=distinct)
             err = values - ref
             if name in self.offsets:
                 _remove_offsets(err, sub["run"], self.offsets[name])
-            self.sums[name].add(values, err, extrap, lab, static)
+            self.sums[name].add(values, err, extrap, rows)
 
     def fill(self, result: SplitResult) -> None:
         result.n_test_rows = self.n

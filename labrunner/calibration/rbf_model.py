@@ -67,9 +67,11 @@ class RbfModel:
         """(N, d) network inputs of one channel from outputs y (N, 6) and temperature."""
         return network_inputs(self.variant, y, temp_c, channel)
 
-    def compensate(self, y: np.ndarray, temp_c: np.ndarray, base: Compensated | None = None) -> Compensated:
+    def compensate(self, y: np.ndarray, temp_c: np.ndarray, base: Compensated | None = None,
+                   distinct: DistinctInputs | None = None) -> Compensated:
         """Compensated outputs of y (N, 6) at temperatures (N,). `base`: the base polynomial's compensation
-        of the same rows when the caller has it already (hybrid only; not modified)."""
+        of the same rows when the caller has it already (hybrid only; not modified). `distinct`: these
+        rows' distinct inputs, shared by the models compensating them (each column factorised once)."""
         y = np.asarray(y, dtype=float)
         temp_c = np.asarray(temp_c, dtype=float)
         if self.base is not None:
@@ -79,15 +81,17 @@ class RbfModel:
         else:
             out = y.copy()
             extrap = (temp_c < self.t_min_c) | (temp_c > self.t_max_c)
+        shared = distinct if distinct is not None and distinct.of(y, temp_c) else None
         for lo in range(0, y.shape[0], DISTINCT_CHUNK):
             rows = slice(lo, lo + DISTINCT_CHUNK)
-            self._add_networks(y[rows], temp_c[rows], out[rows], extrap[rows])
+            found = shared.chunk(lo) if shared is not None else _Distinct.of(y[rows], temp_c[rows])
+            self._add_networks(y[rows], temp_c[rows], out[rows], extrap[rows], found)
         return Compensated(values=out, extrapolated=extrap)
 
-    def _add_networks(self, y: np.ndarray, temp_c: np.ndarray, out: np.ndarray, extrap: np.ndarray) -> None:
+    def _add_networks(self, y: np.ndarray, temp_c: np.ndarray, out: np.ndarray, extrap: np.ndarray,
+                      distinct: _Distinct) -> None:
         """Add the networks' corrections to `out` and their extrapolation flags to `extrap` (in place)."""
-        columns = {c: (y[:, c] if c >= 0 else temp_c) for c in range(-1, 6)}
-        distinct = _Distinct(columns)
+        columns = distinct.columns
         inputs: dict[tuple[int, ...], np.ndarray] = {}  # a triad's three networks share theirs
         for k, net in enumerate(self.networks):
             used = input_columns(self.variant, k)
@@ -157,7 +161,8 @@ class _Distinct:
 
     Logged outputs are quantised (int16 counts) and so is the temperature, so a million rows hold a few
     thousand distinct (output, temperature) pairs: a network evaluated once per distinct input gives
-    the same values at a fraction of the kernels."""
+    the same values at a fraction of the kernels. Codes and row indices are kept as int32 when they fit
+    (half the memory: `DistinctInputs` keeps them while several models use them)."""
 
     def __init__(self, columns: dict[int, np.ndarray]) -> None:
         self.columns = columns
@@ -165,11 +170,16 @@ class _Distinct:
         self._codes: dict[int, tuple[np.ndarray, int] | None] = {}
         self._rows: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray] | None] = {}
 
+    @classmethod
+    def of(cls, y: np.ndarray, temp_c: np.ndarray) -> _Distinct:
+        """Of the columns of outputs y (N, 6) (0-5) and the temperature (-1)."""
+        return cls({c: (y[:, c] if c >= 0 else temp_c) for c in range(-1, 6)})
+
     def _column(self, c: int) -> tuple[np.ndarray, int] | None:
         if c not in self._codes:
             codes, uniques = pd.factorize(self.columns[c], use_na_sentinel=True)
             # NaN inputs (code -1) take the direct path, which propagates them as before
-            self._codes[c] = None if codes.size and codes.min() < 0 else (codes.astype(np.int64), len(uniques))
+            self._codes[c] = None if codes.size and codes.min() < 0 else (_small(codes), len(uniques))
         return self._codes[c]
 
     def rows(self, used: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
@@ -200,14 +210,43 @@ class _Distinct:
                 if size_c > DISTINCT_MAX_FRACTION * self.n:
                     return None
             dense = code is None
-            code = codes if code is None else code * size + codes
+            code = codes if code is None else code.astype(np.int64, copy=False) * size + codes
         assert code is not None
-        inverse, n_distinct = _refactor(code)
+        # one column's codes are its distinct inputs numbered by first appearance: refactoring returns them
+        inverse, n_distinct = (code, card) if dense else _refactor(code)
         if n_distinct > DISTINCT_MAX_FRACTION * self.n:
             return None
         first = np.empty(n_distinct, dtype=np.int64)
         first[inverse] = np.arange(self.n)  # any row of a distinct input stands for all of them
-        return first, inverse
+        return first, _small(inverse)
+
+
+class DistinctInputs:
+    """The distinct inputs of one set of rows (y, temperature), found once for every model compensating
+    them (`RbfModel.compensate(..., distinct=)`): the paper, triad and hybrid networks of a scoring
+    batch factorise each column once, not once each. Keeps every chunk's codes (int32: up to 64 B a
+    row) while it lives: for a batch of rows, not a campaign."""
+
+    def __init__(self, y: np.ndarray, temp_c: np.ndarray) -> None:
+        self.y = y
+        self.temp_c = temp_c
+        self._chunks: dict[int, _Distinct] = {}
+
+    def of(self, y: np.ndarray, temp_c: np.ndarray) -> bool:
+        """Whether these are the rows (the same arrays)."""
+        return y is self.y and temp_c is self.temp_c
+
+    def chunk(self, lo: int) -> _Distinct:
+        """The distinct inputs of the DISTINCT_CHUNK rows from `lo`."""
+        if lo not in self._chunks:
+            rows = slice(lo, lo + DISTINCT_CHUNK)
+            self._chunks[lo] = _Distinct.of(self.y[rows], self.temp_c[rows])
+        return self._chunks[lo]
+
+
+def _small(codes: np.ndarray) -> np.ndarray:
+    """Non-negative integer codes as int32 when they fit (the same values)."""
+    return codes.astype(np.int32) if codes.size and int(codes.max()) < 2 ** 31 else codes
 
 
 def _refactor(code: np.ndarray) -> tuple[np.ndarray, int]:
