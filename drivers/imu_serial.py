@@ -407,7 +407,7 @@ class SerialImu:
             end = start + n_frames
             self._cond.wait_for(lambda: self._last is not None and self._last >= end, timeout_s)
             corrupt = self._decoder.corrupt - corrupt_at_start
-            parts = [ch for ch in self._chunks if ch[0][-1] > start and ch[0][0] <= end]
+            parts = _chunks_between(self._chunks, start, end)
             late = [ch for ch in self._late if ch[0].max() > start and ch[0].min() <= end]
             if not parts and not late and self.bytes_received > self._since_restart[0]:
                 self._check_stream()
@@ -439,6 +439,21 @@ class SerialImu:
         return ImuRecord(counter=counter, accel_g=accel, gyro_dps=gyro, temp_c=temp, expected=n_frames,
                          dropped=n_frames - int(counter.size), corrupt=corrupt,
                          lsb=self.codec.lsb)
+
+
+def _chunks_between(chunks: list[Chunk], start: int, end: int) -> list[Chunk]:
+    """The chunks (in counter order, counters ascending in each) holding a counter in start+1 .. end: looked
+    for from the newest back, stopping at the first that ends at or before `start` (the ones before it end
+    earlier still), instead of testing all of the ~10 minutes kept."""
+    found = []
+    for ch in reversed(chunks):
+        c = ch[0]
+        if int(c[-1]) <= start:
+            break
+        if int(c[0]) <= end:
+            found.append(ch)
+    found.reverse()
+    return found
 
 
 def _window(arrays: list[np.ndarray], lo: int, hi: int) -> np.ndarray:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from collections.abc import Coroutine
 from dataclasses import dataclass
 from typing import Any, TypeVar, cast
@@ -80,6 +81,7 @@ class ChamberServer:
             raise ValueError(f"chamber sim: profile {self.profile.name!r} has no {' or '.join(missing)} register; "
                              "serve it with controller_units C and controller_decimals 1")
         self.requests = 0
+        self._last_words: dict[int, tuple[float, bool, list[int]]] = {}  # register -> (value, output, words)
         regs = self.profile.registers()
         top = max(regs.values()) + self.profile.words + 1
         device = SimDevice(id=device_id, simdata=[SimData(address=0, count=top, values=0, datatype=DataType.REGISTERS)],
@@ -123,10 +125,20 @@ class ChamberServer:
     def _put(self, regs: list[int], start: int, register: int | None, value: float, *, output: bool = False) -> None:
         if register is None:
             return
-        words = self.profile.encode(value, output=output, units=self.units)
+        words = self._encoded(register, value, output)
         i = register - start
         if 0 <= i and i + len(words) <= len(regs):
             regs[i:i + len(words)] = words
+
+    def _encoded(self, register: int, value: float, output: bool) -> list[int]:
+        """The register words of a value: the last ones of this register again when the value is the same
+        (the setpoint and its limits between commands; a value that cannot be encoded raises every time)."""
+        last = self._last_words.get(register)
+        if last is not None and last[1] == output and _same_value(last[0], value):
+            return last[2]
+        words = self.profile.encode(value, output=output, units=self.units)
+        self._last_words[register] = (value, output, words)
+        return words
 
     def _refresh(self, regs: list[int], start: int) -> None:
         p = self.profile
@@ -242,6 +254,11 @@ class ChamberServer:
             pass
         if self._own_loop:
             self._loop.stop()
+
+
+def _same_value(a: float, b: float) -> bool:
+    """Equal, zeros of one sign (a float register holds -0.0 and 0.0 apart)."""
+    return a == b and (a != 0 or math.copysign(1.0, a) == math.copysign(1.0, b))
 
 
 def _free_port(host: str) -> int:

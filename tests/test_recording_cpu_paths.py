@@ -191,3 +191,43 @@ def test_hot_statements_as_driver_sql_write_and_read_what_execute_does(tmp_path)
     assert results[0] == results[1]
     assert results[0][:3] == (1, 0, 0)
     assert seen.count("hot") == seen.count("execute") >= 8
+
+
+def test_syncs_counted_equal_the_positions_found() -> None:
+    from labrunner.drivers.imu_frames import SYNC, _count_syncs, _sync_positions
+
+    rng = np.random.default_rng(12)
+    for size in (0, 1, 2, 3, 20, 41, 1000, 1001):
+        for _ in range(20):
+            buf = rng.choice(np.frombuffer(SYNC + b"\x00\xa5", dtype=np.uint8), size).astype(np.uint8)
+            assert _count_syncs(buf) == _sync_positions(buf).size
+
+
+def test_the_chunks_of_a_window_found_from_the_newest_back_are_those_that_hold_it() -> None:
+    from labrunner.drivers.imu_serial import _chunks_between
+
+    rng = np.random.default_rng(4)
+    chunks, first = [], 0
+    for _ in range(40):  # in counter order, apart by gaps of lost frames now and then
+        size = int(rng.integers(1, 300))
+        chunks.append((np.arange(first, first + size), None, None, None))
+        first += size + int(rng.integers(0, 3)) * int(rng.integers(1, 100))
+    for start in range(-5, int(chunks[-1][0][-1]) + 5, 37):
+        for n in (0, 1, 50, 1500):
+            want = [ch for ch in chunks if ch[0][-1] > start and ch[0][0] <= start + n]
+            assert _chunks_between(chunks, start, start + n) == want  # type: ignore[arg-type]
+
+
+def test_chamber_registers_cached_by_value_keep_the_sign_of_zero() -> None:
+    from labrunner.clock import VirtualClock
+    from labrunner.sims.chamber_server import ChamberServer
+
+    world = SimWorld(SimLabConfig(seed=0), start_t=0.0)
+    server = ChamberServer(world, VirtualClock(start=0.0), "watlow_f4t", transport="memory")
+    try:
+        for value in (0.0, -0.0, 0.0, 12.5, 12.5, -3.25, -0.0):
+            for output in (False, True):
+                got = server._encoded(601, value, output)
+                assert got == server.profile.encode(value, output=output, units=server.units)
+    finally:
+        server.close()

@@ -7,6 +7,7 @@ the raw data's size; they are stored as `kind="monitor"` sample blocks without a
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -74,7 +75,7 @@ def _full_bin_means(offs: np.ndarray, per_bin: int, columns: tuple[np.ndarray, .
     # One bin: numpy would drop the bin axis and sum each column pairwise (another rounding): not here.
     if n_bins < 2 or n % per_bin or offs[0] != 0 or offs[-1] != n - 1 or not bool(np.all(np.diff(offs) == 1)):
         return None
-    widths = [int(np.prod(a.shape[1:], dtype=np.int64)) for a in columns]
+    widths = [math.prod(a.shape[1:]) for a in columns]
     stacked = np.empty((sum(widths), per_bin, n_bins))
     row = 0
     for a, w in zip(columns, widths):
