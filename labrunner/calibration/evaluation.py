@@ -290,7 +290,10 @@ def _remove_offsets(err: np.ndarray, run: np.ndarray, offsets: tuple[np.ndarray,
         return
     pos = np.minimum(np.searchsorted(runs, run), runs.size - 1)
     has = runs[pos] == run
-    err[has] -= off[pos[has]]
+    if has.all():  # the usual case: no mask to gather the rows through and scatter them back (the same values)
+        err -= off[pos]
+    else:
+        err[has] -= off[pos[has]]
 
 
 def run_offsets(models: Mapping[str, Scored], sub: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
