@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -20,7 +22,8 @@ from .evaluation import SPLITS, SplitResult
 from .evaluation_chunked import evaluate_chunks
 from .fit_rows import CampaignRows, FigureRows, gather_figure_rows, read_records, summary_dict
 from .gain import GainCheck, check_models
-from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_model
+from .rbf import one_malloc_arena
+from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_models
 from .records import RecordOptions, Records, TemperatureSteps, temperature_steps
 from .six_position import StepCalibration, calibrate_steps
 from .thermal_lag_fit import LagReport, TemperatureFilter, fit_with_lag
@@ -144,10 +147,8 @@ def fit_models(records: Records, options: FitOptions, progress: Progress | None 
     poly = {m: PolyModel(accel=p["accel"], gyro=p["gyro"]) for m, p in polys.items() if len(p) == 2}
     if options.poly_method not in poly:
         raise ValueError(f"the {options.poly_method} polynomial cannot be fitted from these records")
-    rbf: dict[str, RbfModel] = {}
-    for variant in options.rbf_variants:
-        rbf[variant] = train_rbf_model(records, variant, base=poly[options.poly_method], options=options.rbf,
-                                       progress=progress)
+    rbf = train_rbf_models(records, options.rbf_variants, base=poly[options.poly_method], options=options.rbf,
+                           progress=progress) if options.rbf_variants else {}
     return Models(steps=steps, six_position=six, poly=poly, poly_method=options.poly_method, rbf=rbf, notes=notes)
 
 
@@ -360,6 +361,68 @@ def _fit_inner(frame: pd.DataFrame, opt: FitOptions, provenance: dict[str, Any] 
     return _fit_campaign(frame, opt, provenance, progress)
 
 
+def _fit(records: Records, opt: FitOptions, timings: dict[str, float], progress: Progress | None) -> Models:
+    """The models of every record (`timings["fit"]`: how long that took)."""
+    t1 = time.perf_counter()
+    try:
+        models = fit_models(records, opt, progress)
+    except ValueError as exc:
+        raise UserError(f"cannot fit: {exc}") from None
+    timings["fit"] = time.perf_counter() - t1
+    return models
+
+
+class _FinalFitFailed(Exception):
+    """The fit of every record failed while the evaluation ran: the evaluation stops at its next refit."""
+
+
+def _fit_and_evaluate(rows: CampaignRows, n_rows: int, records: Records, opt: FitOptions,
+                      timings: dict[str, float],
+                      progress: Progress | None) -> tuple[Models, list[SplitResult], FigureRows]:
+    """The models of every record, the evaluation and the figures' rows: the models, then the figures'
+    rows, in a worker thread while the evaluation runs.
+
+    They are independent (the evaluation refits its splits' training parts itself), so the worker uses
+    the core the evaluation's passes over the rows leave idle. It fits a copy of `records` (its
+    `temperature_steps` sets the copy's steps, the same as the original's), draws nothing at random and
+    reads its own pass of the rows: the models and rows are those of a fit before the evaluation, bit for
+    bit. Its memory comes and goes before the scoring: the evaluation's second pass waits for it."""
+    steps = temperature_steps(records, opt.records.step_gap_c, opt.records.max_step_width_c,
+                              opt.records.continuous_gap_c, opt.records.ramp_bin_c)
+    if progress:
+        progress("fitting the models alongside the evaluation")
+    one_malloc_arena()  # before the worker's first allocation: no arena of its own to keep what it frees
+    with ThreadPoolExecutor(1, thread_name_prefix="labrunner-fit") as pool:
+        final = pool.submit(_fit, copy.copy(records), opt, timings, None)
+        figure_rows = pool.submit(gather_figure_rows, rows, records)  # after the fit (one worker)
+
+        def refit(train: Records) -> dict[str, PolyModel | RbfModel]:
+            if final.done() and final.exception() is not None:
+                raise _FinalFitFailed  # a ValueError would read as this split's failure
+            return fit_models(train, opt).compensators()
+
+        passes = 0
+
+        def chunks() -> Iterable[pd.DataFrame]:
+            nonlocal passes
+            passes += 1
+            if passes > 1:
+                figure_rows.exception()  # wait: the worker's memory is not held while the evaluation scores
+            return rows.chunks()
+
+        t2 = time.perf_counter()
+        try:
+            evaluation = evaluate_chunks(chunks, n_rows, records, steps, refit, opt.splits, opt.holdout_fraction,
+                                         opt.eval_max_rows, opt.seed, progress)
+        except BaseException:
+            failed = final.exception()
+            if failed is not None:  # the fit's own error, as when it came first
+                raise failed from None
+            raise
+        timings["evaluation"] = time.perf_counter() - t2
+        return final.result(), evaluation, figure_rows.result()
+
+
 def _fit_campaign(data: pd.DataFrame | CampaignRows, opt: FitOptions, provenance: dict[str, Any] | None,
                   progress: Progress | None) -> FitResult:
     rows = data if isinstance(data, CampaignRows) else CampaignRows.of_frame(data)
@@ -376,26 +439,15 @@ def _fit_campaign(data: pd.DataFrame | CampaignRows, opt: FitOptions, provenance
         # The whole frame is at hand: the row-level fits (thermal lag, branches) look its rows up by record.
         records.row_record = records.labels(len(rows.frame))
     timings["records"] = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    try:
-        models = fit_models(records, opt, progress)
-    except ValueError as exc:
-        raise UserError(f"cannot fit: {exc}") from None
-    timings["fit"] = time.perf_counter() - t1
+    evaluation: list[SplitResult] = []
+    if opt.evaluate:
+        models, evaluation, samples = _fit_and_evaluate(rows, summary.rows, records, opt, timings, progress)
+    else:
+        models = _fit(records, opt, timings, progress)
+        samples = gather_figure_rows(rows, records)
     if progress:
         progress("gain of every model over the training envelope")
     gains = check_models(dict(models.compensators()), models.polynomial, records, opt.seed)
-    evaluation: list[SplitResult] = []
-    if opt.evaluate:
-        t2 = time.perf_counter()
-
-        def refit(train: Records) -> dict[str, PolyModel | RbfModel]:
-            return fit_models(train, opt).compensators()
-
-        evaluation = evaluate_chunks(rows.chunks, summary.rows, records, models.steps, refit, opt.splits,
-                                     opt.holdout_fraction, opt.eval_max_rows, opt.seed, progress)
-        timings["evaluation"] = time.perf_counter() - t2
-    samples = gather_figure_rows(rows, records)
     prov = dict(provenance or {})
     prov.setdefault("rows", summary.rows)
     prov["software"] = {"name": "labrunner", "version": __version__}

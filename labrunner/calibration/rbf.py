@@ -29,6 +29,10 @@ this makes training on record means equivalent to training on the raw samples.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
+import logging
 import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -37,9 +41,29 @@ from typing import Any
 
 import numpy as np
 
+log = logging.getLogger(__name__)
+
 DEFAULT_WIDTHS: tuple[float, ...] = (0.08, 0.15, 0.3, 0.6)
 CHUNK_ROWS = 1 << 11  # rows per kernel block: (rows x centres) temporaries stay in cache
 _WORKERS = max(1, min(4, os.cpu_count() or 1))
+
+
+M_ARENA_MAX = -8  # glibc's mallopt parameter
+
+
+@functools.cache
+def one_malloc_arena() -> None:
+    """Let threads allocate from the malloc arenas there are instead of one more each (glibc; once per process).
+
+    An arena keeps the memory its threads freed (up to twice the largest array freed, above its top), so
+    every worker thread's arena holds tens of MB through the fit: the paper store's fit peaked at 494 MB
+    with two training threads against 454 MB on one arena (468 MB single-threaded). Has no effect once
+    glibc has settled its arena limit (more than eight arenas), nor beyond glibc."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallopt(M_ARENA_MAX, 1)
+    except (OSError, AttributeError):
+        log.debug("mallopt not available: threads keep their own malloc arenas")
 
 
 @dataclass
@@ -103,6 +127,7 @@ class RbfNetwork:
 
         starts = range(0, x.shape[0], CHUNK_ROWS)
         if len(starts) > 1 and _WORKERS > 1:
+            one_malloc_arena()
             with ThreadPoolExecutor(_WORKERS) as pool:  # numpy releases the GIL in these loops
                 list(pool.map(run, starts))
         else:

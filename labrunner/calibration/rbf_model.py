@@ -21,7 +21,9 @@ Networks train on record means weighted by duration (see `rbf.py`), never on raw
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,7 +31,7 @@ import numpy as np
 import pandas as pd
 
 from .compensation import Compensated, compensate_poly
-from .rbf import DEFAULT_WIDTHS, RbfNetwork, normalisation, train_rbf
+from .rbf import DEFAULT_WIDTHS, RbfNetwork, normalisation, one_malloc_arena, train_rbf
 from .records import Records
 from .thermal_poly import PolyModel
 from .triads import CHANNELS
@@ -286,43 +288,99 @@ def train_rbf_model(records: Records, variant: str = "paper", base: PolyModel | 
                     progress: Callable[[str], None] | None = None) -> RbfModel:
     """Train the six networks of a variant on record means (targets: true - measured, or
     true - polynomial-compensated for ``hybrid``)."""
-    if variant not in VARIANTS:
-        raise ValueError(f"unknown RBF variant {variant!r}; expected one of {', '.join(VARIANTS)}")
-    if variant == "hybrid" and base is None:
-        raise ValueError("the hybrid RBF variant needs the polynomial model it refines")
+    return train_rbf_models(records, (variant,), base, options, progress)[variant]
+
+
+def train_rbf_models(records: Records, variants: Sequence[str], base: PolyModel | None = None,
+                     options: RbfOptions | None = None,
+                     progress: Callable[[str], None] | None = None) -> dict[str, RbfModel]:
+    """`train_rbf_model` of each variant, the networks trained concurrently (TRAIN_WORKERS threads).
+
+    Every network is trained on its own inputs, from its own arrays, with no random draw: the same
+    networks bit for bit as one at a time, on all cores (numpy and BLAS release the GIL in the
+    products that take the time)."""
     opt = options or RbfOptions()
-    y = records.mean
-    temp = records.temp_c
-    start = compensate_poly(base, y, temp).values if variant == "hybrid" and base is not None else y
-    target = records.reference - start
-    runs = np.unique(records.run)
-    if variant == "hybrid" and runs.size > 1:
-        # The polynomial fits the gyro around each run's turn-on bias (fit.py); so does its remainder,
-        # or the network would learn the runs' offsets as a function of the temperatures they covered.
-        w_rec = records.duration_s
-        for r in runs:
-            sel = records.run == r
-            target[sel, 3:] -= np.average(target[sel, 3:], axis=0, weights=w_rec[sel])
-    # Train as on the samples themselves: record means weigh by their row counts, and the
-    # rows' scatter about each mean enters GCV as the constant it is (see rbf.train_rbf).
-    w = records.n_rows
-    within = np.where(np.isfinite(records.sem), records.sem ** 2, 0.0) * (w * (w - 1))[:, None]
-    spacing = step_spacing(temp, records.step)
-    temp_width = opt.min_temp_width_c if opt.min_temp_width_c is not None else spacing
-    nets: list[RbfNetwork] = []
-    for k, name in enumerate(CHANNELS):
-        if progress:
-            progress(f"RBF ({variant}) {name}: {len(records)} records")
-        x = network_inputs(variant, y, temp, k)
+    plans = [_VariantPlan.of(records, v, base, opt) for v in variants]
+    jobs = [(p, k) for p in plans for k in range(len(CHANNELS))]
+    if progress:
+        progress(f"RBF ({', '.join(variants)}): {len(jobs)} networks on {len(records)} records")
+    nets = _map(lambda job: job[0].train(job[1]), jobs)
+    out: dict[str, RbfModel] = {}
+    for i, p in enumerate(plans):
+        out[p.variant] = p.model(nets[i * len(CHANNELS):(i + 1) * len(CHANNELS)])
+    return out
+
+
+TRAIN_WORKERS = max(1, min(4, os.cpu_count() or 1))
+
+
+def _map(fn: Callable[[Any], RbfNetwork], items: list[Any]) -> list[RbfNetwork]:
+    """fn over items, in order, on TRAIN_WORKERS threads."""
+    if TRAIN_WORKERS == 1 or len(items) < 2:
+        return [fn(i) for i in items]
+    one_malloc_arena()
+    with ThreadPoolExecutor(min(TRAIN_WORKERS, len(items))) as pool:
+        out = list(pool.map(fn, items))
+    return out
+
+
+
+@dataclass
+class _VariantPlan:
+    """One variant's training data: inputs, targets and weights of its six networks."""
+
+    variant: str
+    records: Records
+    target: np.ndarray  # (n, 6)
+    within: np.ndarray  # (n, 6) each record's sum of squares about its mean
+    temp_width: float
+    spacing: float
+    base: PolyModel | None
+    options: RbfOptions
+
+    @classmethod
+    def of(cls, records: Records, variant: str, base: PolyModel | None, opt: RbfOptions) -> _VariantPlan:
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown RBF variant {variant!r}; expected one of {', '.join(VARIANTS)}")
+        if variant == "hybrid" and base is None:
+            raise ValueError("the hybrid RBF variant needs the polynomial model it refines")
+        y = records.mean
+        temp = records.temp_c
+        start = compensate_poly(base, y, temp).values if variant == "hybrid" and base is not None else y
+        target = records.reference - start
+        runs = np.unique(records.run)
+        if variant == "hybrid" and runs.size > 1:
+            # The polynomial fits the gyro around each run's turn-on bias (fit.py); so does its remainder,
+            # or the network would learn the runs' offsets as a function of the temperatures they covered.
+            w_rec = records.duration_s
+            for r in runs:
+                sel = records.run == r
+                target[sel, 3:] -= np.average(target[sel, 3:], axis=0, weights=w_rec[sel])
+        # Train as on the samples themselves: record means weigh by their row counts, and the
+        # rows' scatter about each mean enters GCV as the constant it is (see rbf.train_rbf).
+        w = records.n_rows
+        within = np.where(np.isfinite(records.sem), records.sem ** 2, 0.0) * (w * (w - 1))[:, None]
+        spacing = step_spacing(temp, records.step)
+        temp_width = opt.min_temp_width_c if opt.min_temp_width_c is not None else spacing
+        return cls(variant=variant, records=records, target=target, within=within, temp_width=temp_width,
+                   spacing=spacing, base=base if variant == "hybrid" else None, options=opt)
+
+    def train(self, k: int) -> RbfNetwork:
+        """The network of channel k."""
+        opt, rec = self.options, self.records
+        x = network_inputs(self.variant, rec.mean, rec.temp_c, k)
         offset, scale = normalisation(x)
         floor = np.zeros(x.shape[1])
-        if variant != "paper":
-            floor[-1] = temp_width / scale[-1]
-        nets.append(train_rbf(x, target[:, k], w, widths=opt.widths, max_centres=opt.max_centres,
-                              max_candidates=opt.max_candidates, patience=opt.patience, min_width=floor,
-                              in_offset=offset, in_scale=scale, counts=True, within_ss=float(within[:, k].sum())))
-    notes: list[str] = []
-    if spacing == 0:
-        notes.append("one temperature only: the networks cannot learn a temperature dependence")
-    return RbfModel(variant=variant, networks=nets, t_min_c=float(temp.min()), t_max_c=float(temp.max()),
-                    base=base if variant == "hybrid" else None, input_margin=opt.input_margin, notes=notes)
+        if self.variant != "paper":
+            floor[-1] = self.temp_width / scale[-1]
+        return train_rbf(x, self.target[:, k], rec.n_rows, widths=opt.widths, max_centres=opt.max_centres,
+                         max_candidates=opt.max_candidates, patience=opt.patience, min_width=floor,
+                         in_offset=offset, in_scale=scale, counts=True, within_ss=float(self.within[:, k].sum()))
+
+    def model(self, nets: list[RbfNetwork]) -> RbfModel:
+        notes: list[str] = []
+        if self.spacing == 0:
+            notes.append("one temperature only: the networks cannot learn a temperature dependence")
+        temp = self.records.temp_c
+        return RbfModel(variant=self.variant, networks=nets, t_min_c=float(temp.min()), t_max_c=float(temp.max()),
+                        base=self.base, input_margin=self.options.input_margin, notes=notes)
