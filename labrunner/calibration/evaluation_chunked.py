@@ -128,7 +128,7 @@ def _blocked_choice(pop: int, size: int, rng: np.random.Generator) -> np.ndarray
 
 
 INS_CHUNK = 1 << 19  # INS rows compensated at once
-INS_KEYS = ("orientation", "temp", "rate")  # what the INS test reads of a window's row besides its outputs
+INS_KEYS = ("orientation", "temp")  # what compensating a window's row reads besides its outputs (PX4: orientation)
 DRAW_CHUNK = 1 << 20  # rows of the random split's stream drawn at once when its held-out rows are counted
 
 
@@ -552,8 +552,9 @@ def _empty_arrays() -> dict[str, Any]:
 class _InsStream:
     """`evaluation.ins_test` of one split, fed by the scoring pass: its windows' rows are gathered as they
     stream past, and every INS_CHUNK of them (in `win.ravel()` order) is compensated by each model and
-    navigated at once (`ins.NavigationStream`): at most INS_CHUNK rows wait, not every window's (up to
-    MAX_WINDOWS minutes, 1.2 M rows at 50 Hz, per split). The groups are those the chunked code has
+    navigated at once (`ins.NavigationStream`, whose reference solution takes the rows as they come): at
+    most INS_CHUNK rows wait, not every window's (up to MAX_WINDOWS minutes, 1.2 M rows at 50 Hz, per
+    split), and their outputs, temperatures and orientations only. The groups are those the chunked code has
     always compensated: an RBF network's outputs depend on the rows computed with them at the last bit;
     up to INS_CHUNK rows (the paper campaign: 288 000) the whole-frame code's, bit for bit."""
 
@@ -570,7 +571,9 @@ class _InsStream:
         hi = self.win.below(g0 + int(a["t"].size))
         if hi == self.next:
             return
-        self.parts.append(take_rows(a, self.win.positions(self.next, hi) - g0, INS_KEYS))
+        rows = self.win.positions(self.next, hi) - g0
+        self.nav.reference(a["orientation"][rows], a["rate"][rows])
+        self.parts.append(take_rows(a, rows, INS_KEYS))
         self.held += hi - self.next
         self.next = hi
         while self.held >= INS_CHUNK:
@@ -592,6 +595,5 @@ class _InsStream:
         idx = np.arange(m)
         sub = {k: rows[k][idx] for k in INS_KEYS} | {"y": rows["y"][idx]}
         del rows
-        self.nav.reference(sub["orientation"], sub["rate"])
         for name, model in self.models.items():  # one model's outputs at a time
             self.nav.add(name, _apply(model, sub, done={})[0])
