@@ -100,16 +100,22 @@ class ChamberPlant:
         append = out.append
         # The block of normals as locals (drawn ahead in blocks, taken one per step).
         normals, k = self._normals, self._next_normal
+        # min() and max() of two are written out as the builtins decide them (max(a, b): b if b > a else a;
+        # min(a, b): b if b < a else a, NaN and signed zeros included): the same values without the calls.
         for _ in range(n):
             err = setpoint - air
             u_unsat = kp * (err + integral / ti)
-            u = min(max(u_unsat, -100.0), 100.0)
+            u = -100.0 if -100.0 > u_unsat else u_unsat  # min(max(u_unsat, -100.0), 100.0)
+            u = 100.0 if 100.0 < u else u
             # Anti-windup: integrate only while unsaturated or when the error unwinds saturation.
             if u == u_unsat or (u_unsat > 100.0 and err < 0) or (u_unsat < -100.0 and err > 0):
                 integral += err * dt
-            heat = (1.0 if stuck else max(u, 0.0) / 100.0) * heat_cap
+            heat = (1.0 if stuck else (0.0 if 0.0 > u else u) / 100.0) * heat_cap  # max(u, 0.0)
             # cooling_capacity(air): the compressor's rate falls as the air nears min_reachable_c
-            cool = max(-u, 0.0) / 100.0 * (cool_rate * min(max((air - lo) / span, 0.0), 1.5))
+            reach = (air - lo) / span
+            reach = 0.0 if 0.0 > reach else reach  # min(max(reach, 0.0), 1.5)
+            reach = 1.5 if 1.5 < reach else reach
+            cool = (0.0 if 0.0 > -u else -u) / 100.0 * (cool_rate * reach)  # max(-u, 0.0)
             loss = (ambient - air) / loss_tau
             base = air - fluct
             base += (heat - cool + loss) * dt

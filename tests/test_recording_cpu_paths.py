@@ -231,3 +231,68 @@ def test_chamber_registers_cached_by_value_keep_the_sign_of_zero() -> None:
                 assert got == server.profile.encode(value, output=output, units=server.units)
     finally:
         server.close()
+
+
+def _steps_with_builtins(plant, n: int, dt: float) -> list[tuple[float, float]]:  # type: ignore[no-untyped-def]
+    """`ChamberPlant.run_steps` as it was, with min() and max() (the reference for the written-out ones)."""
+    import math
+
+    from labrunner.sims.chamber_plant import _NORMALS_BLOCK
+
+    p = plant.p
+    setpoint, air, integral, fluct, t = plant.setpoint_c, plant.air_c, plant.integral, plant._fluct, plant.t
+    kp, ti, ambient, loss_tau = p.kp_pct_per_c, p.ti_s, p.ambient_c, p.loss_tau_s
+    heat_cap = plant.heating_capacity()
+    stuck = plant.heater_stuck
+    cool_rate = 0.0 if plant.compressor_failed else p.cool_rate_c_per_min / 60.0
+    lo, span = p.min_reachable_c, p.ambient_c - p.min_reachable_c
+    a = math.exp(-dt / p.fluctuation_tau_s)
+    kick = p.fluctuation_c * math.sqrt(1 - a * a)
+    u = plant.output_pct
+    out = []
+    normals, k = plant._normals, plant._next_normal
+    for _ in range(n):
+        err = setpoint - air
+        u_unsat = kp * (err + integral / ti)
+        u = min(max(u_unsat, -100.0), 100.0)
+        if u == u_unsat or (u_unsat > 100.0 and err < 0) or (u_unsat < -100.0 and err > 0):
+            integral += err * dt
+        heat = (1.0 if stuck else max(u, 0.0) / 100.0) * heat_cap
+        cool = max(-u, 0.0) / 100.0 * (cool_rate * min(max((air - lo) / span, 0.0), 1.5))
+        loss = (ambient - air) / loss_tau
+        base = air - fluct
+        base += (heat - cool + loss) * dt
+        if k == len(normals):
+            normals = plant._normals = plant._rng.standard_normal(_NORMALS_BLOCK).tolist()
+            k = 0
+        fluct = a * fluct + kick * normals[k]
+        k += 1
+        air = base + fluct
+        t += dt
+        out.append((t, air))
+    plant._next_normal = k
+    plant.air_c, plant.integral, plant._fluct, plant.t, plant.output_pct = air, integral, fluct, t, u
+    return out
+
+
+def test_the_chamber_plant_without_min_max_calls_is_the_same_to_the_bit() -> None:
+    from labrunner.sims.chamber_plant import ChamberParams, ChamberPlant
+
+    params = ChamberParams(min_reachable_c=-20.0)
+    new, old = ChamberPlant(params, seed=3), ChamberPlant(params, seed=3)
+    schedule = [(85.0, 2500), (-60.0, 6000), (-40.0, 900), (23.0, 1500), (23.0, 10), (-10.0, 700)]
+    outputs, airs = set(), []
+    for k, (setpoint, steps) in enumerate(schedule * 2):
+        for plant in (new, old):
+            plant.set_setpoint(setpoint)
+            plant.heater_failed = k == 3
+            plant.compressor_failed = k == 7
+            plant.heater_stuck = k == 9
+        rows = new.run_steps(steps, 1.0)
+        assert rows == _steps_with_builtins(old, steps, 1.0)
+        assert (new.t, new.air_c, new.integral, new.output_pct, new._fluct) == (
+            old.t, old.air_c, old.integral, old.output_pct, old._fluct)
+        outputs.add(new.output_pct if abs(new.output_pct) == 100.0 else 0.0)
+        airs += [air for _, air in rows]
+    assert outputs == {-100.0, 0.0, 100.0}  # saturated both ways, and in between
+    assert min(airs) < -10.0 and max(airs) > -20.0 + 1.5 * (23.0 + 20.0)  # cooling falling off, and clipped at 1.5
