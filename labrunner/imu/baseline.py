@@ -84,7 +84,8 @@ class TriadModel:
         term = np.empty_like(err)
         # The axes not zero throughout, in one pass: a broadcast reference (one vector for every sample) by
         # its one row (what any() of each column finds, NaN included).
-        used = (u[:1] if u.strides[0] == 0 else u).any(axis=0).tolist() if u.shape[0] else [False] * 3
+        rows = u[:1] if u.strides[0] == 0 else u
+        used = [bool(v) for v in np.asarray(rows.any(axis=0))] if u.shape[0] else [False] * 3
         for j in range(3):
             # A reference axis that is zero throughout (the force and the table's rate lie along one body
             # axis) adds S[:, j] * 0 = +-0: nothing to an error that is not itself a signed zero.
