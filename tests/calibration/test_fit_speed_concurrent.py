@@ -55,3 +55,18 @@ def test_a_final_fit_that_fails_fails_the_fit(cubic_campaign: pd.DataFrame, monk
     monkeypatch.setattr(fit_module, "fit_models", failing)
     with pytest.raises(UserError, match="cannot fit: not with every record"):
         fit_campaign(cubic_campaign, OPTIONS)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 7, 8, 9, 17, 1000, 262_144])
+def test_moments_sum_the_rows_as_the_reduction_does(n: int) -> None:
+    import numpy as np
+
+    from labrunner.calibration.evaluation import _Moments
+
+    rng = np.random.default_rng(n)
+    for x in (rng.normal(size=(n, 6)) * rng.uniform(1e-4, 1e3, 6), np.asfortranarray(rng.normal(size=(n, 6)))):
+        m = _Moments(6)
+        m.add(x)
+        m.add(x[::-1] * 0.5)
+        want = (x - x.mean(axis=0)).sum(axis=0) + (x[::-1] * 0.5 - x.mean(axis=0)).sum(axis=0)
+        np.testing.assert_array_equal(m.s1, want)
