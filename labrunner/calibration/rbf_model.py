@@ -21,7 +21,6 @@ Networks train on record means weighted by duration (see `rbf.py`), never on raw
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -311,7 +310,10 @@ def train_rbf_models(records: Records, variants: Sequence[str], base: PolyModel 
     return out
 
 
-TRAIN_WORKERS = max(1, min(4, os.cpu_count() or 1))
+# One by default: measured on the paper store (2 vCPUs), two training threads gained 0.6 s of a 29 s fit's
+# wall at load 0-1 for +3 s CPU (+10 %; +1.4 s at load 4-6): the cores share their caches and the GIL, so a
+# busy machine would be made slower. More threads: set this (the networks are the same bit for bit).
+TRAIN_WORKERS = 1
 
 
 def _map(fn: Callable[[Any], RbfNetwork], items: list[Any]) -> list[RbfNetwork]:
