@@ -58,6 +58,7 @@ ROOMS: dict[str, str] = {
     "labrunner.output_paths": "base",
     "labrunner.store_address": "base",
     "labrunner.blas_threads": "base",  # threadpoolctl limits for the fits and the diagnosis
+    "labrunner.forked": "base",  # independent parts of a fit in forked children
     "labrunner": "composition",  # the package's __init__: the public Python API
 }
 

@@ -76,6 +76,7 @@ class ProgressBar:
     def __init__(self, total: int, quiet: bool, initial: int = 0) -> None:
         self.bar: Any = None
         self._drawn = time.monotonic()  # when the postfix was last drawn
+        self._last: Progress | None = None  # the last state given
         if not quiet:
             from tqdm import tqdm
 
@@ -91,9 +92,14 @@ class ProgressBar:
     def __call__(self, p: Progress) -> None:
         if self.bar is None:
             return
+        self._last = p
         try:
-            self.bar.set_postfix_str(fit_parts(postfix_parts(p), max(_columns() - BAR_ROOM, 20)), refresh=False)
             now = time.monotonic()
+            if now - self._drawn < REFRESH_S:  # tqdm would not draw yet: the postfix would not be seen
+                if p.steps_done > self.bar.n:
+                    self.bar.update(p.steps_done - self.bar.n)
+                return
+            self.bar.set_postfix_str(fit_parts(postfix_parts(p), max(_columns() - BAR_ROOM, 20)), refresh=False)
             if p.steps_done > self.bar.n:
                 self.bar.update(p.steps_done - self.bar.n)  # draws, at most every REFRESH_S
                 self._drawn = now
@@ -110,6 +116,9 @@ class ProgressBar:
     def close(self) -> None:
         if self.bar is not None:
             try:
+                if self._last is not None:  # the last state (done, stopped), which a throttled call did not show
+                    self.bar.set_postfix_str(fit_parts(postfix_parts(self._last), max(_columns() - BAR_ROOM, 20)),
+                                             refresh=False)
                 self.bar.close()
             except OSError as exc:  # as in __call__: the run's own summary follows and finds the pipe closed
                 log.debug("progress bar off: %s", exc)
