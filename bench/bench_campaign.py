@@ -4,8 +4,9 @@ Usage: python bench/bench_campaign.py [--procedure procedures/paper_campaign.yam
                                       [--skip-run] [--keep] [--workdir DIR]
 
 Runs `labrunner run PROCEDURE --sim --db DB --quiet` as a child process and prints its wall time, CPU
-time and peak RSS (the kernel's count for that child), the recording's own wall time (the campaign
-summary's, before the end-of-run fit) and the lab time, against the targets of issue 15: the dry run,
+time and peak RSS (the kernel's count for that child; and the largest PSS of its process tree, sampled
+every 0.2 s, which counts the end-of-run fit's forked children with their shared pages once), the
+recording's own wall time (the campaign summary's) and the lab time, against the targets of issue 15: the dry run,
 end-of-run fit included, in at most 45 s wall on a quiet machine (load <= 2) and at most 1.5x that with a
 second process hogging a core (`--hog`: the run is repeated beside bench.common.cpu_hog), peak RSS at most
 500 MB. `--no-fit` times the recording alone (a copy of the procedure with `fit: {run: false}`).
@@ -146,6 +147,8 @@ def main() -> int:
             print(f"  {samples:,} samples recorded -> {samples / q.wall_s:,.0f} samples/s end to end")
             report(f"dry run wall ({what})", q.wall_s, WALL_LIMIT_S, "s")
             report("dry run peak RSS", q.peak_rss_mb, RSS_LIMIT_MB, "MB")
+            # The fit's forked children share the parent's pages: what the tree took, shared pages once.
+            report("dry run peak PSS, process tree", q.peak_tree_pss_bytes / 1e6, RSS_LIMIT_MB, "MB")
             if args.hog:
                 with cpu_hog():
                     busy = dry_run(procedure, work / "campaign_hog.db", f"{args.procedure.name}, {what}, CPU hog")

@@ -83,6 +83,10 @@ class Measured:
     sys_s: float
     peak_rss_bytes: int
     returncode: int
+    # The largest proportional set size (PSS) of the command's process tree seen, sampled every 0.2 s:
+    # the memory it took from the machine when it forks children (their shared pages counted once; the
+    # kernel's peak RSS above is the largest single process's). 0: not sampled.
+    peak_tree_pss_bytes: int = 0
 
     @property
     def cpu_s(self) -> float:
@@ -138,6 +142,26 @@ def tree_rss_bytes(pid: int) -> int:
     return total
 
 
+def tree_pss_bytes(pid: int, *, with_root: bool = True) -> int:
+    """Proportional set size of `pid` (unless not `with_root`) and its descendants now (Pss from
+    smaps_rollup summed: pages shared by n of them count 1/n in each; 0 for those gone)."""
+    total = 0
+    for p in _tree(pid)[0 if with_root else 1:]:
+        try:
+            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
+                if line.startswith("Pss:"):
+                    total += int(line.split()[1]) * 1024
+                    break
+        except OSError:
+            continue
+    return total
+
+
+def _pss_sampler(pid: int, stop: threading.Event, peak: list[int]) -> None:
+    while not stop.wait(0.2):
+        peak[0] = max(peak[0], tree_pss_bytes(pid, with_root=False))  # the command's tree, not the launcher
+
+
 def _memory_guard(pid: int, limit: int, stop: threading.Event, tripped: threading.Event) -> None:
     """Kill the process tree of `pid` when its RSS passes `limit` (the machine is shared: no OOM)."""
     while not stop.wait(0.25):
@@ -179,6 +203,9 @@ def run_measured(cmd: Sequence[str | Path], *, cwd: str | Path | None = None, en
                                      daemon=True) if memory_limit_bytes else None
             if guard:
                 guard.start()
+            pss = [0]
+            sampler = threading.Thread(target=_pss_sampler, args=(proc.pid, stop, pss), daemon=True)
+            sampler.start()
             try:
                 launcher_rc = proc.wait()
             except BaseException:
@@ -191,6 +218,7 @@ def run_measured(cmd: Sequence[str | Path], *, cwd: str | Path | None = None, en
                 stop.set()
                 if guard:
                     guard.join()
+                sampler.join()
             wall = time.perf_counter() - start
         stdout = out_file.read_bytes().decode(errors="replace")
         stderr = err_file.read_bytes().decode(errors="replace")
@@ -199,7 +227,7 @@ def run_measured(cmd: Sequence[str | Path], *, cwd: str | Path | None = None, en
             raise RuntimeError(f"cannot run {' '.join(map(str, cmd))}: {stderr.strip().splitlines()[-1:]}")
         status, user, system, maxrss_kb = json.loads(usage_file.read_text())
     measured = Measured(wall_s=wall, user_s=user, sys_s=system, peak_rss_bytes=int(maxrss_kb) * 1024,
-                        returncode=os.waitstatus_to_exitcode(status))
+                        returncode=os.waitstatus_to_exitcode(status), peak_tree_pss_bytes=pss[0])
     return CommandRun(measured, stdout, stderr, tripped.is_set())
 
 
