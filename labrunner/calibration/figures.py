@@ -158,15 +158,13 @@ def write_figures(result: FitResult, out: Path) -> FigureReport:
     keys = list(tasks)
     groups = balanced_groups([_SECONDS.get(k, 0.45) for k in keys], min(configured_processes(), len(keys)))
     parts = fork_map(lambda g: _draw([b for i in g for b in tasks[keys[i]]], out), groups)
-    report = FigureReport()
-    for name, what, _ in builders:
-        part = next(p for p in parts if name in p.seconds)
-        if name in part.written:
-            report.written[name] = what
-        else:
-            report.skipped[name] = part.skipped[name]
-        report.seconds[name] = part.seconds[name]
-    report.skipped.update(NOT_DRAWN)
+    written = {k: v for p in parts for k, v in p.written.items()}
+    skipped = {k: v for p in parts for k, v in p.skipped.items()}
+    seconds = {k: v for p in parts for k, v in p.seconds.items()}
+    names = [b[0] for b in builders]  # the paper's order, whichever process drew a figure
+    report = FigureReport(written={n: written[n] for n in names if n in written},
+                          skipped={n: skipped[n] for n in names if n in skipped} | NOT_DRAWN,
+                          seconds={n: seconds[n] for n in names})
     log.info("figures: %d written, %d skipped in %.1f s", len(report.written), len(report.skipped),
              sum(report.seconds.values()))
     return report

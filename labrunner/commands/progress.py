@@ -95,17 +95,14 @@ class ProgressBar:
         self._last = p
         try:
             now = time.monotonic()
-            if now - self._drawn < REFRESH_S:  # tqdm would not draw yet: the postfix would not be seen
-                if p.steps_done > self.bar.n:
-                    self.bar.update(p.steps_done - self.bar.n)
-                return
-            self.bar.set_postfix_str(fit_parts(postfix_parts(p), max(_columns() - BAR_ROOM, 20)), refresh=False)
+            due = now - self._drawn >= REFRESH_S  # before that tqdm would not draw: the postfix would not be seen
+            if due:
+                self.bar.set_postfix_str(fit_parts(postfix_parts(p), max(_columns() - BAR_ROOM, 20)), refresh=False)
+                self._drawn = now
             if p.steps_done > self.bar.n:
                 self.bar.update(p.steps_done - self.bar.n)  # draws, at most every REFRESH_S
-                self._drawn = now
-            elif now - self._drawn >= REFRESH_S:
+            elif due:
                 self.bar.refresh()  # the readings and the soak change while no step does
-                self._drawn = now
         except OSError as exc:
             # stderr is gone (`2>&1 | head` exited, a closed terminal): a display must never end a campaign,
             # which the sequencer would do for an error raised in its progress callback.
