@@ -97,8 +97,9 @@ class Measured:
         return self.peak_rss_bytes / 1e6
 
     def line(self) -> str:
+        pss = f", process tree peak PSS {self.peak_tree_pss_bytes / 1e6:,.0f} MB" if self.peak_tree_pss_bytes else ""
         return (f"wall {self.wall_s:.2f} s, CPU {self.cpu_s:.2f} s (user {self.user_s:.2f}, sys {self.sys_s:.2f}), "
-                f"peak RSS {self.peak_rss_mb:,.0f} MB")
+                f"peak RSS {self.peak_rss_mb:,.0f} MB{pss}")
 
 
 def _measured(start: float, status: int, usage: Any) -> Measured:

@@ -238,7 +238,9 @@ class _Scores:
 
 
 Scored = PolyModel | RbfModel | Px4Reference
-SCORE_CHUNK = 1 << 16  # held-out rows scored per batch: every model's temporaries ~3 MB (2^18: the paper fit's processes 630 -> 425 MB PSS, no slower)
+# Held-out rows scored per batch: every model's temporaries ~3 MB (2^18: the paper fit's two processes
+# 630 -> 425 MB PSS, no slower).
+SCORE_CHUNK = 1 << 16
 
 
 def _take(a: dict[str, Any], rows: np.ndarray) -> dict[str, np.ndarray]:
