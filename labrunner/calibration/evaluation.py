@@ -238,6 +238,9 @@ class _Scores:
 
 
 Scored = PolyModel | RbfModel | Px4Reference
+# The INS windows' rows compensated at once, here and in the chunked evaluation (an RBF network's float32
+# outputs depend on the rows computed with them at the last bit): ~3 MB temporaries per model.
+INS_CHUNK = 1 << 16
 # Held-out rows scored per batch: every model's temporaries ~3 MB (2^18: the paper fit's two processes
 # 630 -> 425 MB PSS, no slower).
 SCORE_CHUNK = 1 << 16
@@ -493,10 +496,13 @@ def ins_test(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.nd
         result.ins_skipped = "no 60 s window of contiguous static held-out rows (records are shorter)"
         return
     rows_w = win.ravel()
-    sub = _take(a, rows_w)
-    done: dict[int, Compensated] = {}
-    outputs = {name: _apply(model, sub, done=done)[0] for name, model in {"raw": None, **models}.items()}
-    result.ins = ins_errors(a, win, outputs)
+    outputs: dict[str, list[np.ndarray]] = {}
+    for lo in range(0, rows_w.size, INS_CHUNK):  # the groups the chunked evaluation compensates
+        sub = _take(a, rows_w[lo:lo + INS_CHUNK])
+        done: dict[int, Compensated] = {}
+        for name, model in {"raw": None, **models}.items():
+            outputs.setdefault(name, []).append(_apply(model, sub, done=done)[0])
+    result.ins = ins_errors(a, win, {name: np.concatenate(parts) for name, parts in outputs.items()})
 
 
 def time_blocks(records: Records) -> tuple[np.ndarray | None, str]:

@@ -45,6 +45,7 @@ from . import evaluation as _evaluation
 from .chunked_records import _KEYS, concat_records, join_arrays, take_rows
 from .evaluation import (
     _DESCRIPTIONS,
+    INS_CHUNK,
     SPLITS,
     STATIC_RATE_DPS,
     FitModels,
@@ -128,7 +129,6 @@ def _blocked_choice(pop: int, size: int, rng: np.random.Generator) -> np.ndarray
     return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
 
 
-INS_CHUNK = 1 << 19  # INS rows compensated at once
 INS_KEYS = ("orientation", "temp")  # what compensating a window's row reads besides its outputs (PX4: orientation)
 DRAW_CHUNK = 1 << 20  # rows of the random split's stream drawn at once when its held-out rows are counted
 
@@ -576,7 +576,7 @@ class _InsStream:
     most INS_CHUNK rows wait, not every window's (up to MAX_WINDOWS minutes, 1.2 M rows at 50 Hz, per
     split), and their outputs, temperatures and orientations only. The groups are those the chunked code has
     always compensated: an RBF network's outputs depend on the rows computed with them at the last bit;
-    up to INS_CHUNK rows (the paper campaign: 288 000) the whole-frame code's, bit for bit."""
+    the whole-frame code compensates the same groups (`evaluation.ins_test`): its numbers, bit for bit."""
 
     def __init__(self, models: Mapping[str, Scored], win: _WindowRows) -> None:
         self.models: dict[str, Scored | None] = {"raw": None, **models}
