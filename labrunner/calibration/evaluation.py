@@ -241,8 +241,8 @@ Scored = PolyModel | RbfModel | Px4Reference
 # The INS windows' rows compensated at once, here and in the chunked evaluation (an RBF network's float32
 # outputs depend on the rows computed with them at the last bit): ~3 MB temporaries per model.
 INS_CHUNK = 1 << 16
-# Held-out rows scored per batch: every model's temporaries ~3 MB (2^18: the paper fit's two processes
-# 630 -> 425 MB PSS, no slower).
+# Held-out rows scored per batch: every model's temporaries ~3 MB (the paper fit's two processes peaked at
+# 630 MB PSS with 2^18, 425 MB with 2^16, in the same time).
 SCORE_CHUNK = 1 << 16
 
 

@@ -22,7 +22,7 @@ from .evaluation import SPLITS, SplitResult
 from .evaluation_chunked import evaluate_chunks
 from .fit_rows import CampaignRows, FigureRows, gather_figure_rows, read_records, summary_dict
 from .gain import GainCheck, check_models
-from .rbf import one_malloc_arena
+from .rbf import tuned_malloc
 from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_models
 from .records import RecordOptions, Records, TemperatureSteps, temperature_steps
 from .six_position import StepCalibration, calibrate_steps
@@ -391,7 +391,7 @@ def _fit_and_evaluate(rows: CampaignRows, n_rows: int, records: Records, opt: Fi
                               opt.records.continuous_gap_c, opt.records.ramp_bin_c)
     if progress:
         progress("fitting the models alongside the evaluation")
-    one_malloc_arena()  # before the worker's first allocation: no arena of its own to keep what it frees
+    tuned_malloc()  # before the worker's first allocation: no arena of its own to keep what it frees
     with ThreadPoolExecutor(1, thread_name_prefix="labrunner-fit") as pool:
         final = pool.submit(_fit, copy.copy(records), opt, timings, None)
         figure_rows = pool.submit(gather_figure_rows, rows, records)  # after the fit (one worker)

@@ -54,7 +54,7 @@ MMAP_THRESHOLD_BYTES = 1 << 22
 
 
 @functools.cache
-def one_malloc_arena() -> None:
+def tuned_malloc() -> None:
     """Let threads allocate from the malloc arenas there are instead of one more each, and return freed large
     arrays to the system (glibc; once per process).
 
@@ -135,7 +135,7 @@ class RbfNetwork:
 
         starts = range(0, x.shape[0], CHUNK_ROWS)
         if len(starts) > 1 and _WORKERS > 1:
-            one_malloc_arena()
+            tuned_malloc()
             with ThreadPoolExecutor(_WORKERS) as pool:  # numpy releases the GIL in these loops
                 list(pool.map(run, starts))
         else:

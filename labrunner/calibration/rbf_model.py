@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 from .compensation import Compensated, compensate_poly
-from .rbf import DEFAULT_WIDTHS, RbfNetwork, normalisation, one_malloc_arena, train_rbf
+from .rbf import DEFAULT_WIDTHS, RbfNetwork, normalisation, train_rbf, tuned_malloc
 from .records import Records
 from .thermal_poly import PolyModel
 from .triads import CHANNELS
@@ -320,7 +320,7 @@ def _map(fn: Callable[[Any], RbfNetwork], items: list[Any]) -> list[RbfNetwork]:
     """fn over items, in order, on TRAIN_WORKERS threads."""
     if TRAIN_WORKERS == 1 or len(items) < 2:
         return [fn(i) for i in items]
-    one_malloc_arena()
+    tuned_malloc()
     with ThreadPoolExecutor(min(TRAIN_WORKERS, len(items))) as pool:
         out = list(pool.map(fn, items))
     return out
