@@ -288,8 +288,6 @@ def summarise(name: str, rows: list[Row]) -> None:
     report(f"{name} peak RSS {hi.scale:g}x/{lo.scale:g}x", hi.quiet.peak_rss_bytes / lo.quiet.peak_rss_bytes, 1.2,
            "x")
     if lo.quiet.peak_tree_pss_bytes and hi.quiet.peak_tree_pss_bytes:  # the fit's forked children counted
-        print(f"{name}: peak PSS of the process tree {lo.quiet.peak_tree_pss_bytes / 1e6:,.0f} MB at {lo.scale:g}x, "
-              f"{hi.quiet.peak_tree_pss_bytes / 1e6:,.0f} MB at {hi.scale:g}x")
         report(f"{name} peak tree PSS {hi.scale:g}x/{lo.scale:g}x",
                hi.quiet.peak_tree_pss_bytes / lo.quiet.peak_tree_pss_bytes, 1.2, "x")
 

@@ -496,12 +496,13 @@ def ins_test(models: Mapping[str, Scored], a: dict[str, np.ndarray], rows: np.nd
         result.ins_skipped = "no 60 s window of contiguous static held-out rows (records are shorter)"
         return
     rows_w = win.ravel()
-    outputs: dict[str, list[np.ndarray]] = {}
+    scored: dict[str, Scored | None] = {"raw": None, **models}
+    outputs: dict[str, list[np.ndarray]] = {name: [] for name in scored}
     for lo in range(0, rows_w.size, INS_CHUNK):  # the groups the chunked evaluation compensates
         sub = _take(a, rows_w[lo:lo + INS_CHUNK])
         done: dict[int, Compensated] = {}
-        for name, model in {"raw": None, **models}.items():
-            outputs.setdefault(name, []).append(_apply(model, sub, done=done)[0])
+        for name, model in scored.items():
+            outputs[name].append(_apply(model, sub, done=done)[0])
     result.ins = ins_errors(a, win, {name: np.concatenate(parts) for name, parts in outputs.items()})
 
 

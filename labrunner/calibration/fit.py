@@ -22,7 +22,7 @@ from .evaluation import SPLITS, SplitResult
 from .evaluation_chunked import evaluate_chunks
 from .fit_rows import CampaignRows, FigureRows, gather_figure_rows, read_records, summary_dict
 from .gain import GainCheck, check_models
-from .rbf import tuned_malloc
+from .malloc_tuning import tuned_malloc
 from .rbf_model import VARIANTS, RbfModel, RbfOptions, train_rbf_models
 from .records import RecordOptions, Records, TemperatureSteps, temperature_steps
 from .six_position import StepCalibration, calibrate_steps

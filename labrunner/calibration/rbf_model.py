@@ -30,7 +30,8 @@ import numpy as np
 import pandas as pd
 
 from .compensation import Compensated, compensate_poly
-from .rbf import DEFAULT_WIDTHS, RbfNetwork, normalisation, train_rbf, tuned_malloc
+from .malloc_tuning import tuned_malloc
+from .rbf import DEFAULT_WIDTHS, RbfNetwork, normalisation, train_rbf
 from .records import Records
 from .thermal_poly import PolyModel
 from .triads import CHANNELS
