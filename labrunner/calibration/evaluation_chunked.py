@@ -369,8 +369,12 @@ def _compact(ranks: np.ndarray | None, pop: int) -> np.ndarray | None:
 def evaluate_chunks(source: RowSource, n_rows: int, records: Records, steps: TemperatureSteps,
                     fit_models: FitModels, splits: tuple[str, ...] = SPLITS, holdout_fraction: float = 0.2,
                     max_rows: int = 1_000_000, seed: int = 0,
-                    progress: Callable[[str], None] | None = None) -> list[SplitResult]:
-    """`evaluation.evaluate` over a chunked campaign of `n_rows` rows whose records carry row ranges."""
+                    progress: Callable[[str], None] | None = None,
+                    settle: Callable[[], object] | None = None) -> list[SplitResult]:
+    """`evaluation.evaluate` over a chunked campaign of `n_rows` rows whose records carry row ranges.
+
+    `settle` waits for work the caller runs beside the evaluation in other threads; it is called before the
+    scoring pass forks its processes (a child has no threads: a wait there for the caller's thread never ends)."""
     plan: list[_Split] = []
     for name in splits:
         if progress:
@@ -416,6 +420,8 @@ def evaluate_chunks(source: RowSource, n_rows: int, records: Records, steps: Tem
     _more_passes(source, records, n_rows, live, holdout_fraction, progress)
     if progress:
         progress("evaluation: scoring")
+    if settle is not None:
+        settle()
     _score_pass(source, records, n_rows, live, holdout_fraction)
     for s in live:
         if s.random:

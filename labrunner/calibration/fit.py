@@ -413,7 +413,7 @@ def _fit_and_evaluate(rows: CampaignRows, n_rows: int, records: Records, opt: Fi
         t2 = time.perf_counter()
         try:
             evaluation = evaluate_chunks(chunks, n_rows, records, steps, refit, opt.splits, opt.holdout_fraction,
-                                         opt.eval_max_rows, opt.seed, progress)
+                                         opt.eval_max_rows, opt.seed, progress, settle=figure_rows.exception)
         except BaseException:
             failed = final.exception()
             if failed is not None:  # the fit's own error, as when it came first
